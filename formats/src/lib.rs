@@ -1,0 +1,85 @@
+//! Typed, validated readers and atomic writers for every file kind the ProFuse
+//! pipeline exchanges. `SPEC.md` at the repository root is the normative contract;
+//! this crate is its reference implementation and `formats/python/profuse_formats.py`
+//! its mirror.
+//!
+//! # Design
+//!
+//! Every file is a [safetensors](https://github.com/huggingface/safetensors) container:
+//! an 8-byte little-endian header length, a JSON header (tensor dtypes, shapes, byte
+//! offsets and a `__metadata__` string map naming the `format` and `format_version`),
+//! then the raw little-endian tensor bytes. Readers memory-map the file and hand out
+//! [`Buffer`]s that borrow the mapped bytes when they are aligned (the writer makes sure
+//! they are), so opening a multi-gigabyte warp file costs a header parse.
+//!
+//! Reading validates everything the file alone can show: the container structure
+//! (truncation, a header that lies about offsets or sizes), the kind and major version,
+//! required tensors, dtypes, shapes that agree with each other through named dimensions,
+//! index ranges, finiteness and unit norms. Writing runs the same validation first, then
+//! writes a temporary file next to the target and renames it into place. Errors are one
+//! enum, [`FormatError`], whose variants name file, tensor and expectation; its
+//! [`FormatError::code`] is shared with the Python reader.
+//!
+//! # Example: a round trip
+//!
+//! ```
+//! use profuse_formats::{FileKind, Prompts};
+//!
+//! let dir = tempfile::tempdir()?;
+//! let path = dir.path().join("prompts.safetensors");
+//! let prompts = Prompts {
+//!     names: vec!["chair".into(), "table".into()],
+//!     dim: 3,
+//!     embeddings: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0].into(),
+//!     ..Default::default()
+//! };
+//! prompts.write(&path)?;
+//! let back = Prompts::read(&path)?;
+//! assert_eq!(back, prompts);
+//! assert_eq!(back.embedding(1), &[0.0, 1.0, 0.0]);
+//!
+//! // A bad file is a typed error naming the file and the problem.
+//! std::fs::write(&path, b"not a safetensors file")?;
+//! let err = Prompts::read(&path).unwrap_err();
+//! assert_eq!(err.code(), "header");
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+mod cameras;
+mod check;
+mod container;
+mod error;
+mod features;
+mod gaussians;
+mod inspect;
+mod kind;
+mod masks;
+mod matches;
+mod mesh;
+mod pq;
+mod prompts;
+mod proposals;
+mod selection;
+mod vertex_labels;
+mod writer;
+
+pub use cameras::{Cameras, Pose, ROTATION_TOLERANCE};
+pub use check::{format_float, Floats, Labels};
+pub use container::{Buffer, Container, Dtype, Element, Scalar, TensorInfo, MAX_HEADER_BYTES};
+pub use error::{FormatError, Result};
+pub use features::Features;
+pub use gaussians::{Gaussians, SH_REST_COEFFS};
+pub use inspect::{inspect, validate_any, Report};
+pub use kind::{check_version, FileKind, Kind, MAJOR_VERSION};
+pub use masks::Masks;
+pub use matches::{Matches, SparseMatches, WarpCoords};
+pub use mesh::Mesh;
+pub use pq::{Pq, KSUB};
+pub use prompts::Prompts;
+pub use proposals::{Proposals, NO_PROPOSAL};
+pub use selection::Selection;
+pub use vertex_labels::VertexLabels;
+pub use writer::FileWriter;
+
+/// Re-exported so users can build F16 tensors without naming the `half` crate.
+pub use half::f16;

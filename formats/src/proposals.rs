@@ -1,0 +1,111 @@
+//! `profuse.proposals`: 3D Context Proposals, the mask clusters of warp-graph
+//! (SPEC.md "proposals").
+
+use std::collections::BTreeMap;
+
+use crate::check::{check_ids, check_len, invalid, TensorReader};
+use crate::container::{Buffer, Container};
+use crate::error::Result;
+use crate::kind::{FileKind, Kind};
+use crate::masks::Masks;
+use crate::writer::FileWriter;
+
+/// "No proposal" in `mask_proposal`.
+pub const NO_PROPOSAL: u32 = u32::MAX;
+
+/// The proposal of every mask plus per-proposal member and view counts.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Proposals {
+    /// `mask_proposal` U32 [M]: proposal id of each global mask, or 4294967295 (none).
+    pub mask_proposal: Buffer<u32>,
+    /// `proposal_size` U32 [P]: member masks of each proposal (>= 1).
+    pub proposal_size: Buffer<u32>,
+    /// `proposal_views` U32 [P]: distinct views among the members (1..=size).
+    pub proposal_views: Buffer<u32>,
+    /// Other metadata (the thresholds used are recorded here), kept on round trips.
+    pub extra: BTreeMap<String, String>,
+}
+
+impl Proposals {
+    /// Number of proposals P.
+    pub fn len(&self) -> usize {
+        self.proposal_size.len()
+    }
+
+    /// Whether there are no proposals.
+    pub fn is_empty(&self) -> bool {
+        self.proposal_size.is_empty()
+    }
+
+    /// Checks this file against the masks file it was built from: one entry per mask,
+    /// and view counts that match the masks' views.
+    pub fn check_against(&self, masks: &Masks, path: &str) -> Result<()> {
+        check_len(path, "mask_proposal", self.mask_proposal.len(), masks.num_masks(), "entries, one per mask of the masks file")?;
+        let mut views: Vec<Vec<usize>> = vec![Vec::new(); self.len()];
+        for (m, p) in self.mask_proposal.iter().enumerate() {
+            if *p != NO_PROPOSAL {
+                views[*p as usize].push(masks.view_of(m));
+            }
+        }
+        for (p, mut v) in views.into_iter().enumerate() {
+            v.dedup();
+            if v.len() != self.proposal_views[p] as usize {
+                return Err(invalid(path, "proposal_views", format!("proposal {p} records {} views but its masks span {}", self.proposal_views[p], v.len())));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl FileKind for Proposals {
+    const KIND: Kind = Kind::Proposals;
+
+    fn from_container(c: &Container) -> Result<Self> {
+        let mut r = TensorReader::new(c);
+        Ok(Proposals {
+            mask_proposal: r.req("mask_proposal", "M")?,
+            proposal_size: r.req("proposal_size", "P")?,
+            proposal_views: r.req("proposal_views", "P")?,
+            extra: r.extra_meta(&[]),
+        })
+    }
+
+    fn validate(&self, path: &str) -> Result<()> {
+        let p = self.len();
+        check_len(path, "proposal_views", self.proposal_views.len(), p, "values, one per proposal")?;
+        check_ids(path, "mask_proposal", &self.mask_proposal, p as u64, Some(u64::from(NO_PROPOSAL)), "the proposals")?;
+        let mut members = vec![0u64; p];
+        for id in self.mask_proposal.iter().filter(|id| **id != NO_PROPOSAL) {
+            members[*id as usize] += 1;
+        }
+        for (i, (size, views)) in self.proposal_size.iter().zip(self.proposal_views.iter()).enumerate() {
+            if u64::from(*size) != members[i] {
+                return Err(invalid(path, "proposal_size", format!("proposal {i} records {size} members but mask_proposal assigns {}", members[i])));
+            }
+            if *size == 0 {
+                return Err(invalid(path, "proposal_size", format!("proposal {i} is empty")));
+            }
+            if *views == 0 || views > size {
+                return Err(crate::check::out_of_range(path, "proposal_views", i, views, format!("a view count in 1..={size} (its member count)")));
+            }
+        }
+        Ok(())
+    }
+
+    fn fill<'a>(&'a self, w: &mut FileWriter<'a>) {
+        for (k, val) in &self.extra {
+            w.meta(k, val.clone());
+        }
+        w.tensor("mask_proposal", &[self.mask_proposal.len()], &self.mask_proposal)
+            .tensor("proposal_size", &[self.len()], &self.proposal_size)
+            .tensor("proposal_views", &[self.len()], &self.proposal_views);
+    }
+
+    fn counts(&self) -> BTreeMap<&'static str, u64> {
+        BTreeMap::from([
+            ("masks", self.mask_proposal.len() as u64),
+            ("proposals", self.len() as u64),
+            ("assigned_masks", self.mask_proposal.iter().filter(|p| **p != NO_PROPOSAL).count() as u64),
+        ])
+    }
+}
