@@ -84,7 +84,7 @@ impl FileKind for Cameras {
             intrinsics: r.req("intrinsics", "V,4")?,
             world_to_camera: r.req("world_to_camera", "V,3,4")?,
             distortion: r.opt("distortion", "V,4")?,
-            extra: r.extra_meta(&["image_names"]),
+            extra: r.extra_meta(&["image_names", "convention"]),
             image_names,
         })
     }

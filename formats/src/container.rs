@@ -89,24 +89,6 @@ impl Dtype {
             Dtype::U64 | Dtype::I64 | Dtype::F64 => 8,
         }
     }
-
-    pub(crate) fn to_safetensors(self) -> safetensors::Dtype {
-        match self {
-            Dtype::Bool => safetensors::Dtype::BOOL,
-            Dtype::U8 => safetensors::Dtype::U8,
-            Dtype::I8 => safetensors::Dtype::I8,
-            Dtype::U16 => safetensors::Dtype::U16,
-            Dtype::I16 => safetensors::Dtype::I16,
-            Dtype::U32 => safetensors::Dtype::U32,
-            Dtype::I32 => safetensors::Dtype::I32,
-            Dtype::U64 => safetensors::Dtype::U64,
-            Dtype::I64 => safetensors::Dtype::I64,
-            Dtype::F16 => safetensors::Dtype::F16,
-            Dtype::BF16 => safetensors::Dtype::BF16,
-            Dtype::F32 => safetensors::Dtype::F32,
-            Dtype::F64 => safetensors::Dtype::F64,
-        }
-    }
 }
 
 impl fmt::Display for Dtype {

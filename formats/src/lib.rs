@@ -59,6 +59,7 @@ mod mesh;
 mod pq;
 mod prompts;
 mod proposals;
+pub mod samples;
 mod selection;
 mod vertex_labels;
 mod writer;

@@ -110,7 +110,7 @@ impl FileKind for Masks {
 
     fn fill<'a>(&'a self, w: &mut FileWriter<'a>) {
         let (v, h, wd) = (self.view_names.len(), self.height, self.width);
-        let m = self.num_masks();
+        let m = self.features.len().checked_div(self.dim).unwrap_or(0);
         for (k, val) in &self.extra {
             w.meta(k, val.clone());
         }

@@ -3,7 +3,8 @@
 //! the old file or the complete new one, never a partial write.
 
 use std::borrow::Cow;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
+use std::io::Write;
 use std::path::Path;
 
 use crate::container::{Dtype, Element, Scalar};
@@ -16,21 +17,6 @@ struct Pending<'a> {
     dtype: Dtype,
     shape: Vec<usize>,
     bytes: Cow<'a, [u8]>,
-}
-
-impl safetensors::View for &Pending<'_> {
-    fn dtype(&self) -> safetensors::Dtype {
-        self.dtype.to_safetensors()
-    }
-    fn shape(&self) -> &[usize] {
-        &self.shape
-    }
-    fn data(&self) -> Cow<'_, [u8]> {
-        Cow::Borrowed(&self.bytes)
-    }
-    fn data_len(&self) -> usize {
-        self.bytes.len()
-    }
 }
 
 /// Collects tensors and metadata of one file, then writes it atomically.
@@ -95,23 +81,68 @@ impl<'a> FileWriter<'a> {
         self
     }
 
-    /// Serialises to bytes (the header and tensor order are deterministic).
+    /// Serialises to bytes (deterministic: sorted metadata keys, tensors ordered by
+    /// decreasing alignment then name, header padded to 8 bytes).
     pub fn to_bytes(&self) -> Result<Vec<u8>> {
-        let meta = self.header_metadata();
-        safetensors::serialize(self.tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta))
-            .map_err(|e| FormatError::Header {
-                path: "<memory>".to_string(),
-                detail: format!("cannot serialise: {e}"),
-            })
+        let mut out = Vec::new();
+        self.serialise(&mut out).map_err(|e| FormatError::Io {
+            path: "<memory>".to_string(),
+            action: "cannot serialise",
+            source: e,
+        })?;
+        Ok(out)
     }
 
-    fn header_metadata(&self) -> HashMap<String, String> {
-        let mut meta: HashMap<String, String> = self.metadata.clone().into_iter().collect();
+    fn metadata_with_kind(&self) -> BTreeMap<String, String> {
+        let mut meta = self.metadata.clone();
         meta.entry("format".to_string())
             .or_insert_with(|| self.kind.format_name().to_string());
         meta.entry("format_version".to_string())
             .or_insert_with(|| self.kind.version().to_string());
         meta
+    }
+
+    /// Tensors in the order the safetensors reference writer uses, which keeps every
+    /// tensor aligned to its dtype when the data section is 8-aligned.
+    fn ordered(&self) -> Vec<(&String, &Pending<'a>)> {
+        let mut order: Vec<_> = self.tensors.iter().collect();
+        order.sort_by(|a, b| b.1.dtype.size().cmp(&a.1.dtype.size()).then_with(|| a.0.cmp(b.0)));
+        order
+    }
+
+    fn header(&self) -> std::io::Result<Vec<u8>> {
+        let mut header = serde_json::Map::new();
+        header.insert("__metadata__".to_string(), serde_json::to_value(self.metadata_with_kind())?);
+        let mut offset = 0usize;
+        for (name, t) in self.ordered() {
+            let numel: usize = t.shape.iter().product();
+            if numel * t.dtype.size() != t.bytes.len() {
+                return Err(std::io::Error::new(
+                    std::io::ErrorKind::InvalidInput,
+                    format!("tensor `{name}`: shape {:?} of {} does not match {} bytes", t.shape, t.dtype, t.bytes.len()),
+                ));
+            }
+            header.insert(
+                name.clone(),
+                serde_json::json!({"dtype": t.dtype.name(), "shape": t.shape, "data_offsets": [offset, offset + t.bytes.len()]}),
+            );
+            offset += t.bytes.len();
+        }
+        let mut text = serde_json::to_vec(&serde_json::Value::Object(header))?;
+        while (8 + text.len()) % 8 != 0 {
+            text.push(b' ');
+        }
+        Ok(text)
+    }
+
+    fn serialise(&self, out: &mut impl Write) -> std::io::Result<()> {
+        let header = self.header()?;
+        out.write_all(&(header.len() as u64).to_le_bytes())?;
+        out.write_all(&header)?;
+        for (_, t) in self.ordered() {
+            out.write_all(&t.bytes)?;
+        }
+        out.flush()
     }
 
     /// Writes the file atomically: temp file in the same directory, fsync, rename.
@@ -131,16 +162,10 @@ impl<'a> FileWriter<'a> {
             .prefix(".profuse-tmp-")
             .tempfile_in(dir)
             .map_err(|e| io("cannot create a temporary file next to it", e))?;
-        safetensors::serialize_to_file(
-            self.tensors.iter().map(|(n, t)| (n.as_str(), t)),
-            Some(self.header_metadata()),
-            tmp.path(),
-        )
-        .map_err(|e| FormatError::Io {
-            path: label.clone(),
-            action: "cannot write",
-            source: std::io::Error::other(e.to_string()),
-        })?;
+        {
+            let mut w = std::io::BufWriter::with_capacity(1 << 20, tmp.as_file());
+            self.serialise(&mut w).map_err(|e| io("cannot write", e))?;
+        }
         tmp.as_file().sync_all().map_err(|e| io("cannot flush", e))?;
         tmp.persist(path).map_err(|e| io("cannot rename into place", e.error))?;
         Ok(())
