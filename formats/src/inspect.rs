@@ -9,7 +9,7 @@ use serde_json::{json, Value};
 use crate::container::Container;
 use crate::error::{FormatError, Result};
 use crate::kind::{FileKind, Kind};
-use crate::{Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection, SparseMatches, VertexLabels};
+use crate::{Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection, SparseMatches, VertexLabels, ViewMaps};
 
 /// The outcome of inspecting one file.
 #[derive(Debug)]
@@ -91,5 +91,6 @@ pub fn validate_any(c: &Container) -> Result<BTreeMap<&'static str, u64>> {
         Kind::Selection => counts::<Selection>(c),
         Kind::VertexLabels => counts::<VertexLabels>(c),
         Kind::Mesh => counts::<Mesh>(c),
+        Kind::ViewMaps => counts::<ViewMaps>(c),
     }
 }

@@ -25,11 +25,12 @@ pub enum Kind {
     Selection,
     VertexLabels,
     Mesh,
+    ViewMaps,
 }
 
 impl Kind {
     /// All kinds, in SPEC.md order.
-    pub const ALL: [Kind; 12] = [
+    pub const ALL: [Kind; 13] = [
         Kind::Cameras,
         Kind::Gaussians,
         Kind::Masks,
@@ -42,6 +43,7 @@ impl Kind {
         Kind::Selection,
         Kind::VertexLabels,
         Kind::Mesh,
+        Kind::ViewMaps,
     ];
 
     /// Short name (`cameras`, `sparse_matches`, ...).
@@ -59,6 +61,7 @@ impl Kind {
             Kind::Selection => "selection",
             Kind::VertexLabels => "vertex_labels",
             Kind::Mesh => "mesh",
+            Kind::ViewMaps => "view_maps",
         }
     }
 
@@ -77,6 +80,7 @@ impl Kind {
             Kind::Selection => "profuse.selection",
             Kind::VertexLabels => "profuse.vertex_labels",
             Kind::Mesh => "profuse.mesh",
+            Kind::ViewMaps => "profuse.view_maps",
         }
     }
 

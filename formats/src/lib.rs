@@ -62,6 +62,7 @@ mod proposals;
 pub mod samples;
 mod selection;
 mod vertex_labels;
+mod view_maps;
 mod writer;
 
 pub use cameras::{Cameras, Pose, ROTATION_TOLERANCE};
@@ -80,6 +81,7 @@ pub use prompts::Prompts;
 pub use proposals::{Proposals, NO_PROPOSAL};
 pub use selection::Selection;
 pub use vertex_labels::VertexLabels;
+pub use view_maps::{ViewMaps, NO_OBJECT};
 pub use writer::FileWriter;
 
 /// Re-exported so users can build F16 tensors without naming the `half` crate.

@@ -14,7 +14,7 @@ use crate::kind::{FileKind, Kind};
 use crate::writer::FileWriter;
 use crate::{
     Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
-    SparseMatches, VertexLabels, WarpCoords,
+    SparseMatches, VertexLabels, ViewMaps, WarpCoords,
 };
 
 /// Two views looking at the origin from +x and −z, 8x6 pixels.
@@ -214,6 +214,19 @@ pub fn mesh() -> Mesh {
         labels: Some(vec![1, 1, 2, 0].into()),
         instances: Some(vec![1, 1, 2, 0].into()),
         extra: BTreeMap::from([("label_space".to_string(), "nyu40".to_string())]),
+    }
+}
+
+/// Two views of 3x2 depth and object-id maps.
+pub fn view_maps() -> ViewMaps {
+    ViewMaps {
+        view_names: vec!["images/a.png".into(), "images/b.png".into()],
+        num_objects: 3,
+        width: 3,
+        height: 2,
+        depth: vec![1.0, 1.5, 2.0, 0.0, 2.5, 3.0, 4.0, 4.0, 4.25, 0.5, 0.75, 0.0].into(),
+        object_ids: Some(vec![0, 0, 1, u32::MAX, 2, 2, 1, 1, 1, 0, 0, u32::MAX].into()),
+        extra: BTreeMap::new(),
     }
 }
 
@@ -611,6 +624,18 @@ fn cases() -> Vec<Case> {
     inv.push(("out_of_range", mutated(&me, |m| if let Some(f) = &mut m.faces { set(f, 1, [0, 2, 4]) }), "out_of_range", Some("faces")));
     inv.push(("non_finite", mutated(&me, |m| set(&mut m.vertices, 3, [0.0, f32::NAN, 0.0])), "non_finite", Some("vertices")));
     cases.push(Case { stem: "mesh", valid: v, invalid: inv });
+
+    let vm = view_maps();
+    let v = bytes_of(&unvalidated(&vm));
+    let mut inv = container_defects(&v, "depth");
+    inv.push(("missing_tensor", without_tensor(&v, "depth"), "missing_tensor", Some("depth")));
+    inv.push(("dtype", retype(&v, "depth", Dtype::F64), "dtype", Some("depth")));
+    inv.push(("shape", reshape(&v, "object_ids", &[2, 3, 2]), "shape", Some("object_ids")));
+    inv.push(("metadata", with_meta(&vm, "num_objects", None), "metadata", Some("num_objects")));
+    inv.push(("out_of_range", mutated(&vm, |m| if let Some(o) = &mut m.object_ids { set(o, 4, 3) }), "out_of_range", Some("object_ids")));
+    inv.push(("negative_depth", mutated(&vm, |m| set(&mut m.depth, 2, -1.0)), "out_of_range", Some("depth")));
+    inv.push(("non_finite", mutated(&vm, |m| set(&mut m.depth, 5, f32::INFINITY)), "non_finite", Some("depth")));
+    cases.push(Case { stem: "view_maps", valid: v, invalid: inv });
 
     cases
 }

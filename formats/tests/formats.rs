@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use profuse_formats::samples::{self, Vector};
 use profuse_formats::{
     inspect, Cameras, Container, FileKind, Floats, Features, Gaussians, Labels, Masks, Matches,
-    Mesh, Pq, Prompts, Proposals, Selection, SparseMatches, VertexLabels, WarpCoords, f16,
+    Mesh, Pq, Prompts, Proposals, Selection, SparseMatches, VertexLabels, ViewMaps, WarpCoords, f16,
 };
 use proptest::prelude::*;
 
@@ -89,6 +89,7 @@ fn each_typed_reader_rejects_its_defects() {
     check::<Selection>("selection");
     check::<VertexLabels>("vertex_labels");
     check::<Mesh>("mesh");
+    check::<ViewMaps>("view_maps");
 }
 
 #[test]
@@ -362,6 +363,19 @@ proptest! {
             extra: Default::default(),
         };
         round_trip(&mesh);
+    }
+
+    #[test]
+    fn view_maps_round_trip(views in 0usize..3, h in 0usize..4, w in 0usize..4, ids in any::<bool>()) {
+        let n = views * h * w;
+        let m = ViewMaps {
+            view_names: (0..views).map(|i| format!("v{i}")).collect(),
+            num_objects: 4, width: w, height: h,
+            depth: (0..n).map(|i| i as f32 * 0.5).collect::<Vec<_>>().into(),
+            object_ids: ids.then(|| (0..n as u32).map(|i| if i % 5 == 4 { u32::MAX } else { i % 4 }).collect::<Vec<_>>().into()),
+            extra: Default::default(),
+        };
+        round_trip(&m);
     }
 }
 
