@@ -1,1 +1,237 @@
-//! End-to-end tests.
+//! End-to-end tests across crates and tools: the command-line tools run as a user runs
+//! them, on the golden vectors and on the real data in `../shared/data/`.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn profuse(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_profuse"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .unwrap()
+}
+
+fn json(out: &Output) -> serde_json::Value {
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "stdout is not JSON ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
+}
+
+#[test]
+fn inspect_reports_valid_files_with_exit_code_0() {
+    let out = profuse(&["inspect", "formats/vectors/valid/masks.safetensors"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j = json(&out);
+    assert_eq!(j["valid"], true);
+    assert_eq!(j["kind"], "masks");
+    assert_eq!(j["counts"]["masks"], 5);
+    assert_eq!(j["tensors"]["labels"]["dtype"], "U16");
+    assert!(out.stderr.is_empty());
+}
+
+#[test]
+fn inspect_fails_invalid_files_with_exit_code_1_and_the_error_on_stderr() {
+    let out = profuse(&[
+        "inspect",
+        "formats/vectors/invalid/cameras__invalid.safetensors",
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let j = json(&out);
+    assert_eq!(j["valid"], false);
+    assert_eq!(j["error"]["code"], "invalid");
+    assert_eq!(j["error"]["field"], "world_to_camera");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("cameras__invalid.safetensors") && err.contains("orthonormal"),
+        "{err}"
+    );
+
+    let out = profuse(&["inspect", "no/such/file.safetensors"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert_eq!(json(&out)["error"]["code"], "io");
+}
+
+/// The Python reader reads exactly what Rust wrote and prints the same inspect JSON.
+/// Needs `numpy` and `safetensors` for python3; skipped with a message when they are
+/// missing, unless PROFUSE_REQUIRE_PYTHON=1 (set by `.ci/run`) makes that a failure.
+#[test]
+fn python_reader_agrees_with_rust_on_every_golden_vector() {
+    let probe = Command::new("python3")
+        .args(["-c", "import numpy, safetensors"])
+        .output();
+    let available = probe.map(|o| o.status.success()).unwrap_or(false);
+    if !available {
+        assert!(
+            std::env::var("PROFUSE_REQUIRE_PYTHON").as_deref() != Ok("1"),
+            "python3 with numpy and safetensors is required (pip install -r formats/python/requirements.txt)"
+        );
+        eprintln!("SKIPPED: python3 with numpy + safetensors not found; run `pip install -r formats/python/requirements.txt`");
+        return;
+    }
+    let out = Command::new("python3")
+        .arg("formats/python/test_profuse_formats.py")
+        .env("PROFUSE_RUST_INSPECT", env!("CARGO_BIN_EXE_profuse"))
+        .current_dir(root())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "python tests failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+fn shared_data(rel: &str) -> Option<PathBuf> {
+    let p = root().join("../shared/data").join(rel);
+    if p.exists() {
+        Some(p)
+    } else {
+        eprintln!(
+            "SKIPPED: {} is absent (the shared data folder is not next to the checkout)",
+            p.display()
+        );
+        None
+    }
+}
+
+fn scene_io(args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_scene-io"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .unwrap()
+}
+
+/// guitar.ply -> gaussians file that `profuse inspect` reports valid with 90854 Gaussians,
+/// -> PLY again, whose re-import is bit-identical.
+#[test]
+fn scene_io_converts_guitar_ply_and_profuse_inspect_validates_it() {
+    let Some(ply) = shared_data("splats/guitar.ply") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let g = dir.path().join("guitar.safetensors");
+    let out = scene_io(&[
+        "ply-import".as_ref(),
+        ply.as_os_str(),
+        "--out".as_ref(),
+        g.as_os_str(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report = json(&out);
+    assert_eq!(report["gaussians"], 90854);
+    assert_eq!(report["clamped_opacity"], 667);
+
+    let out = profuse(&["inspect", g.to_str().unwrap()]);
+    assert!(out.status.success());
+    let j = json(&out);
+    assert_eq!(
+        (j["valid"].clone(), j["kind"].clone()),
+        (true.into(), "gaussians".into())
+    );
+    assert_eq!(j["counts"]["gaussians"], 90854);
+    assert_eq!(
+        j["tensors"]["means"]["shape"],
+        serde_json::json!([90854, 3])
+    );
+
+    let back_ply = dir.path().join("back.ply");
+    let out = scene_io(&[
+        "ply-export".as_ref(),
+        g.as_os_str(),
+        "--out".as_ref(),
+        back_ply.as_os_str(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let again = dir.path().join("again.safetensors");
+    let out = scene_io(&[
+        "ply-import".as_ref(),
+        back_ply.as_os_str(),
+        "--out".as_ref(),
+        again.as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    assert!(out.status.success());
+    assert_eq!(json(&out)["clamped_opacity"], 0);
+    assert_eq!(
+        std::fs::read(&g).unwrap(),
+        std::fs::read(&again).unwrap(),
+        "PLY round trip changed bytes"
+    );
+}
+
+/// fox transforms.json -> 50 views (17 frames have no image: warnings on stderr), valid.
+#[test]
+fn scene_io_imports_fox_transforms_with_50_views() {
+    let Some(tj) = shared_data("fox/transforms.json") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cams = dir.path().join("cameras.safetensors");
+    let out = scene_io(&[
+        "transforms".as_ref(),
+        tj.as_os_str(),
+        "--out".as_ref(),
+        cams.as_os_str(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(json(&out)["views"], 50);
+    assert_eq!(
+        String::from_utf8_lossy(&out.stderr)
+            .matches("warning:")
+            .count(),
+        17
+    );
+    let j = json(&profuse(&["inspect", cams.to_str().unwrap()]));
+    assert_eq!(j["counts"]["views"], 50);
+    assert_eq!(j["valid"], true);
+}
+
+/// A failing import exits 1, names the file, and writes nothing.
+#[test]
+fn scene_io_failure_exits_1_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.ply");
+    std::fs::write(&bad, b"ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n\0\0\0\0").unwrap();
+    let target = dir.path().join("out.safetensors");
+    let out = scene_io(&[
+        "ply-import".as_ref(),
+        bad.as_os_str(),
+        "--out".as_ref(),
+        target.as_os_str(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("bad.ply"));
+    assert!(out.stdout.is_empty());
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        1,
+        "something was written"
+    );
+}

@@ -91,26 +91,68 @@ impl FileKind for Cameras {
 
     fn validate(&self, path: &str) -> Result<()> {
         let v = self.image_names.len();
-        check_len(path, "image_size", self.image_size.len(), v, "rows, one per image name")?;
-        check_len(path, "intrinsics", self.intrinsics.len(), v, "rows, one per image name")?;
-        check_len(path, "world_to_camera", self.world_to_camera.len(), v, "rows, one per image name")?;
+        check_len(
+            path,
+            "image_size",
+            self.image_size.len(),
+            v,
+            "rows, one per image name",
+        )?;
+        check_len(
+            path,
+            "intrinsics",
+            self.intrinsics.len(),
+            v,
+            "rows, one per image name",
+        )?;
+        check_len(
+            path,
+            "world_to_camera",
+            self.world_to_camera.len(),
+            v,
+            "rows, one per image name",
+        )?;
         if let Some(i) = self.image_names.iter().position(String::is_empty) {
-            return Err(crate::check::meta_err(path, "image_names", &format!("non-empty names (entry {i} is empty)")));
+            return Err(crate::check::meta_err(
+                path,
+                "image_names",
+                &format!("non-empty names (entry {i} is empty)"),
+            ));
         }
         for (i, [w, h]) in self.image_size.iter().enumerate() {
             if *w == 0 || *h == 0 {
-                return Err(out_of_range(path, "image_size", i, format!("{w}x{h}"), "a width and height >= 1"));
+                return Err(out_of_range(
+                    path,
+                    "image_size",
+                    i,
+                    format!("{w}x{h}"),
+                    "a width and height >= 1",
+                ));
             }
         }
-        check_finite(path, "intrinsics", bytemuck::cast_slice::<_, f64>(&self.intrinsics))?;
+        check_finite(
+            path,
+            "intrinsics",
+            bytemuck::cast_slice::<_, f64>(&self.intrinsics),
+        )?;
         for (i, k) in self.intrinsics.iter().enumerate() {
             for (j, f) in k[..2].iter().enumerate() {
                 if *f <= 0.0 {
-                    return Err(out_of_range(path, "intrinsics", i * 4 + j, f, "a focal length > 0"));
+                    return Err(out_of_range(
+                        path,
+                        "intrinsics",
+                        i * 4 + j,
+                        f,
+                        "a focal length > 0",
+                    ));
                 }
             }
         }
-        check_finite(path, "world_to_camera", bytemuck::cast_slice::<_, f64>(&self.world_to_camera))?;
+        check_finite(
+            path,
+            "world_to_camera",
+            bytemuck::cast_slice::<_, f64>(&self.world_to_camera),
+        )?;
         for i in 0..v {
             check_rotation(path, i, &self.pose(i).0)?;
         }
@@ -162,7 +204,11 @@ fn check_rotation(path: &str, view: usize, r: &[[f64; 3]; 3]) -> Result<()> {
         - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
         + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
     if det <= 0.0 {
-        return Err(invalid(path, "world_to_camera", format!("view {view}: rotation has determinant {det:.6}, expected +1 (a reflection)")));
+        return Err(invalid(
+            path,
+            "world_to_camera",
+            format!("view {view}: rotation has determinant {det:.6}, expected +1 (a reflection)"),
+        ));
     }
     Ok(())
 }

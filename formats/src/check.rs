@@ -153,7 +153,8 @@ impl<'c> TensorReader<'c> {
 
     /// Binds a dimension from metadata or another source before tensors use it.
     pub(crate) fn bind(&mut self, sym: &str, value: usize, source: &str) {
-        self.dims.insert(sym.to_string(), (value, source.to_string()));
+        self.dims
+            .insert(sym.to_string(), (value, source.to_string()));
     }
 
     pub(crate) fn dim(&self, sym: &str) -> usize {
@@ -294,7 +295,11 @@ impl<'c> TensorReader<'c> {
         self.c
             .metadata()
             .iter()
-            .filter(|(k, _)| !known.contains(&k.as_str()) && k.as_str() != "format" && k.as_str() != "format_version")
+            .filter(|(k, _)| {
+                !known.contains(&k.as_str())
+                    && k.as_str() != "format"
+                    && k.as_str() != "format_version"
+            })
             .map(|(k, v)| (k.clone(), v.clone()))
             .collect()
     }
@@ -308,7 +313,12 @@ pub(crate) fn meta_err(path: &str, key: &str, expected: &str) -> FormatError {
     }
 }
 
-pub(crate) fn shape_err(path: &str, tensor: &str, found: Vec<usize>, expected: String) -> FormatError {
+pub(crate) fn shape_err(
+    path: &str,
+    tensor: &str,
+    found: Vec<usize>,
+    expected: String,
+) -> FormatError {
     FormatError::Shape {
         path: path.to_string(),
         tensor: tensor.to_string(),
@@ -342,16 +352,31 @@ pub(crate) fn out_of_range(
 }
 
 /// Checks that a length matches `expected`, naming the tensor and its role.
-pub(crate) fn check_len(path: &str, tensor: &str, len: usize, expected: usize, what: &str) -> Result<()> {
+pub(crate) fn check_len(
+    path: &str,
+    tensor: &str,
+    len: usize,
+    expected: usize,
+    what: &str,
+) -> Result<()> {
     if len == expected {
         Ok(())
     } else {
-        Err(shape_err(path, tensor, vec![len], format!("{expected} {what}")))
+        Err(shape_err(
+            path,
+            tensor,
+            vec![len],
+            format!("{expected} {what}"),
+        ))
     }
 }
 
 /// Every value finite.
-pub(crate) fn check_finite<T: Copy + Into<f64>>(path: &str, tensor: &str, values: &[T]) -> Result<()> {
+pub(crate) fn check_finite<T: Copy + Into<f64>>(
+    path: &str,
+    tensor: &str,
+    values: &[T],
+) -> Result<()> {
     match values.iter().position(|v| !(*v).into().is_finite()) {
         None => Ok(()),
         Some(index) => Err(FormatError::NonFinite {
@@ -366,17 +391,15 @@ pub(crate) fn check_finite<T: Copy + Into<f64>>(path: &str, tensor: &str, values
 /// Every value finite, for a F16/F32 tensor.
 pub(crate) fn check_finite_floats(path: &str, tensor: &str, values: &Floats) -> Result<()> {
     match values {
-        Floats::F16(b) => {
-            match b.iter().position(|v| !v.is_finite()) {
-                None => Ok(()),
-                Some(index) => Err(FormatError::NonFinite {
-                    path: path.to_string(),
-                    tensor: tensor.to_string(),
-                    index,
-                    value: format_float(b[index].to_f64()),
-                }),
-            }
-        }
+        Floats::F16(b) => match b.iter().position(|v| !v.is_finite()) {
+            None => Ok(()),
+            Some(index) => Err(FormatError::NonFinite {
+                path: path.to_string(),
+                tensor: tensor.to_string(),
+                index,
+                value: format_float(b[index].to_f64()),
+            }),
+        },
         Floats::F32(b) => check_finite(path, tensor, b),
     }
 }
@@ -387,7 +410,13 @@ pub(crate) fn check_unit_interval(path: &str, tensor: &str, values: &Floats) -> 
     for i in 0..values.len() {
         let v = values.get(i);
         if !(0.0..=1.0).contains(&v) {
-            return Err(out_of_range(path, tensor, i, format_float(f64::from(v)), "a value in [0, 1]"));
+            return Err(out_of_range(
+                path,
+                tensor,
+                i,
+                format_float(f64::from(v)),
+                "a value in [0, 1]",
+            ));
         }
     }
     Ok(())
@@ -416,19 +445,34 @@ pub(crate) fn check_ids<T: Copy + Into<u64>>(
 }
 
 /// CSR offsets: start at 0, never decrease, end at `total`.
-pub(crate) fn check_offsets<T: Copy + Into<u64>>(path: &str, tensor: &str, offsets: &[T], total: u64) -> Result<()> {
+pub(crate) fn check_offsets<T: Copy + Into<u64>>(
+    path: &str,
+    tensor: &str,
+    offsets: &[T],
+    total: u64,
+) -> Result<()> {
     let mut prev = 0u64;
     for (i, v) in offsets.iter().enumerate() {
         let v: u64 = (*v).into();
         let ok = if i == 0 { v == 0 } else { v >= prev };
         if !ok {
-            let expected = if i == 0 { "0".to_string() } else { format!("a value >= {prev} (offsets never decrease)") };
+            let expected = if i == 0 {
+                "0".to_string()
+            } else {
+                format!("a value >= {prev} (offsets never decrease)")
+            };
             return Err(out_of_range(path, tensor, i, v, expected));
         }
         prev = v;
     }
     if prev != total {
-        return Err(out_of_range(path, tensor, offsets.len().saturating_sub(1), prev, format!("the last offset to equal {total}")));
+        return Err(out_of_range(
+            path,
+            tensor,
+            offsets.len().saturating_sub(1),
+            prev,
+            format!("the last offset to equal {total}"),
+        ));
     }
     Ok(())
 }
@@ -457,13 +501,31 @@ pub(crate) fn check_unit_rows(
     let mut row = vec![0f32; dim];
     for r in 0..values.len() / dim {
         values.read_into(r * dim, &mut row);
-        let norm = row.iter().map(|v| f64::from(*v) * f64::from(*v)).sum::<f64>().sqrt();
+        let norm = row
+            .iter()
+            .map(|v| f64::from(*v) * f64::from(*v))
+            .sum::<f64>()
+            .sqrt();
         if zero_row(r) {
             if norm != 0.0 {
-                return Err(invalid(path, tensor, format!("row {r} is marked invalid but is not all zero (norm {})", format_float(norm))));
+                return Err(invalid(
+                    path,
+                    tensor,
+                    format!(
+                        "row {r} is marked invalid but is not all zero (norm {})",
+                        format_float(norm)
+                    ),
+                ));
             }
         } else if (norm - 1.0).abs() > f64::from(tol) {
-            return Err(invalid(path, tensor, format!("row {r} has L2 norm {}, expected 1 within {tol}", format_float(norm))));
+            return Err(invalid(
+                path,
+                tensor,
+                format!(
+                    "row {r} has L2 norm {}, expected 1 within {tol}",
+                    format_float(norm)
+                ),
+            ));
         }
     }
     Ok(())
@@ -474,7 +536,11 @@ pub fn format_float(v: f64) -> String {
     if v.is_nan() {
         "nan".to_string()
     } else if v.is_infinite() {
-        if v > 0.0 { "inf".to_string() } else { "-inf".to_string() }
+        if v > 0.0 {
+            "inf".to_string()
+        } else {
+            "-inf".to_string()
+        }
     } else {
         format!("{v:?}")
     }

@@ -242,7 +242,11 @@ impl<T: Element> fmt::Debug for Buffer<T> {
             "Buffer<{}>(len {}, {})",
             std::any::type_name::<T>(),
             self.len(),
-            if self.is_zero_copy() { "mapped" } else { "owned" }
+            if self.is_zero_copy() {
+                "mapped"
+            } else {
+                "owned"
+            }
         )
     }
 }
@@ -384,11 +388,18 @@ impl Container {
     /// Raw little-endian bytes of a tensor.
     pub fn raw(&self, name: &str) -> Option<&[u8]> {
         let info = self.tensors.get(name)?;
-        Some(&self.bytes[self.data_start + info.data_offsets.0..self.data_start + info.data_offsets.1])
+        Some(
+            &self.bytes
+                [self.data_start + info.data_offsets.0..self.data_start + info.data_offsets.1],
+        )
     }
 }
 
-type ParsedHeader = (usize, BTreeMap<String, TensorInfo>, BTreeMap<String, String>);
+type ParsedHeader = (
+    usize,
+    BTreeMap<String, TensorInfo>,
+    BTreeMap<String, String>,
+);
 
 fn parse_header(path: &str, bytes: &[u8]) -> Result<ParsedHeader> {
     let header_err = |detail: String| FormatError::Header {
@@ -422,8 +433,8 @@ fn parse_header(path: &str, bytes: &[u8]) -> Result<ParsedHeader> {
     let data_start = 8 + header_len as usize;
     let text = std::str::from_utf8(&bytes[8..data_start])
         .map_err(|e| header_err(format!("header is not UTF-8: {e}")))?;
-    let json: serde_json::Value = serde_json::from_str(text)
-        .map_err(|e| header_err(format!("header is not JSON: {e}")))?;
+    let json: serde_json::Value =
+        serde_json::from_str(text).map_err(|e| header_err(format!("header is not JSON: {e}")))?;
     let object = json
         .as_object()
         .ok_or_else(|| header_err("header is not a JSON object".to_string()))?;
@@ -436,9 +447,9 @@ fn parse_header(path: &str, bytes: &[u8]) -> Result<ParsedHeader> {
                 .as_object()
                 .ok_or_else(|| header_err("`__metadata__` is not an object".to_string()))?;
             for (k, v) in map {
-                let v = v.as_str().ok_or_else(|| {
-                    header_err(format!("`__metadata__.{k}` is not a string"))
-                })?;
+                let v = v
+                    .as_str()
+                    .ok_or_else(|| header_err(format!("`__metadata__.{k}` is not a string")))?;
                 metadata.insert(k.clone(), v.to_string());
             }
             continue;
@@ -469,19 +480,25 @@ fn parse_entry(name: &str, entry: &serde_json::Value) -> std::result::Result<Ten
         .iter()
         .map(|d| d.as_u64().and_then(|d| usize::try_from(d).ok()))
         .collect::<Option<Vec<usize>>>()
-        .ok_or_else(|| format!("entry `{name}` has a shape that is not a list of non-negative integers"))?;
+        .ok_or_else(|| {
+            format!("entry `{name}` has a shape that is not a list of non-negative integers")
+        })?;
     let offsets = obj
         .get("data_offsets")
         .and_then(|s| s.as_array())
         .filter(|a| a.len() == 2)
         .and_then(|a| Some((a[0].as_u64()?, a[1].as_u64()?)))
-        .ok_or_else(|| format!("entry `{name}` has no `data_offsets` pair of non-negative integers"))?;
+        .ok_or_else(|| {
+            format!("entry `{name}` has no `data_offsets` pair of non-negative integers")
+        })?;
     let (begin, end) = (
         usize::try_from(offsets.0).map_err(|_| format!("entry `{name}` offset too large"))?,
         usize::try_from(offsets.1).map_err(|_| format!("entry `{name}` offset too large"))?,
     );
     if begin > end {
-        return Err(format!("entry `{name}` has data_offsets [{begin}, {end}] that decrease"));
+        return Err(format!(
+            "entry `{name}` has data_offsets [{begin}, {end}] that decrease"
+        ));
     }
     let numel = shape
         .iter()

@@ -2,7 +2,10 @@
 
 use std::collections::BTreeMap;
 
-use crate::check::{check_finite, check_finite_floats, check_flags, check_len, check_unit_rows, invalid, out_of_range, Floats, TensorReader};
+use crate::check::{
+    check_finite, check_finite_floats, check_flags, check_len, check_unit_rows, invalid,
+    out_of_range, Floats, TensorReader,
+};
 use crate::container::{Buffer, Container};
 use crate::error::Result;
 use crate::kind::{FileKind, Kind};
@@ -53,12 +56,25 @@ impl FileKind for Features {
     fn validate(&self, path: &str) -> Result<()> {
         let n = self.len();
         if self.dim == 0 {
-            return Err(crate::check::shape_err(path, "features", vec![n, 0], "[N, D] with D >= 1".to_string()));
+            return Err(crate::check::shape_err(
+                path,
+                "features",
+                vec![n, 0],
+                "[N, D] with D >= 1".to_string(),
+            ));
         }
-        check_len(path, "features", self.features.len(), n * self.dim, "values (N x D, N from `valid`)")?;
+        check_len(
+            path,
+            "features",
+            self.features.len(),
+            n * self.dim,
+            "values (N x D, N from `valid`)",
+        )?;
         check_flags(path, "valid", &self.valid)?;
         check_finite_floats(path, "features", &self.features)?;
-        check_unit_rows(path, "features", &self.features, self.dim, &|r| self.valid[r] == 0)?;
+        check_unit_rows(path, "features", &self.features, self.dim, &|r| {
+            self.valid[r] == 0
+        })?;
         if let Some(s) = &self.weight_sum {
             check_len(path, "weight_sum", s.len(), n, "values, one per Gaussian")?;
             check_finite(path, "weight_sum", s)?;
@@ -66,7 +82,14 @@ impl FileKind for Features {
                 return Err(out_of_range(path, "weight_sum", i, s[i], "a weight >= 0"));
             }
             if let Some(i) = (0..n).find(|&i| (s[i] > 0.0) != (self.valid[i] == 1)) {
-                return Err(invalid(path, "weight_sum", format!("Gaussian {i} has weight {} but valid = {}", s[i], self.valid[i])));
+                return Err(invalid(
+                    path,
+                    "weight_sum",
+                    format!(
+                        "Gaussian {i} has weight {} but valid = {}",
+                        s[i], self.valid[i]
+                    ),
+                ));
             }
         }
         Ok(())
@@ -91,7 +114,10 @@ impl FileKind for Features {
         BTreeMap::from([
             ("gaussians", self.len() as u64),
             ("feature_dim", self.dim as u64),
-            ("valid", self.valid.iter().filter(|v| **v == 1).count() as u64),
+            (
+                "valid",
+                self.valid.iter().filter(|v| **v == 1).count() as u64,
+            ),
         ])
     }
 }

@@ -2,7 +2,9 @@
 
 use std::collections::BTreeMap;
 
-use crate::check::{check_finite, check_len, invalid, meta_err, out_of_range, shape_err, TensorReader};
+use crate::check::{
+    check_finite, check_len, invalid, meta_err, out_of_range, shape_err, TensorReader,
+};
 use crate::container::{Buffer, Container};
 use crate::error::Result;
 use crate::kind::{FileKind, Kind};
@@ -71,7 +73,11 @@ impl FileKind for Gaussians {
             let coeffs = SH_REST_COEFFS[degree];
             Some(r.req("sh_rest", &format!("N,{coeffs},3"))?)
         } else if c.tensors().contains_key("sh_rest") {
-            return Err(meta_err(c.path(), "sh_degree", "a degree >= 1 when tensor `sh_rest` is present"));
+            return Err(meta_err(
+                c.path(),
+                "sh_degree",
+                "a degree >= 1 when tensor `sh_rest` is present",
+            ));
         } else {
             None
         };
@@ -90,9 +96,27 @@ impl FileKind for Gaussians {
 
     fn validate(&self, path: &str) -> Result<()> {
         let n = self.len();
-        check_len(path, "log_scales", self.log_scales.len(), n, "rows, one per mean")?;
-        check_len(path, "rotations", self.rotations.len(), n, "rows, one per mean")?;
-        check_len(path, "opacity_logits", self.opacity_logits.len(), n, "values, one per mean")?;
+        check_len(
+            path,
+            "log_scales",
+            self.log_scales.len(),
+            n,
+            "rows, one per mean",
+        )?;
+        check_len(
+            path,
+            "rotations",
+            self.rotations.len(),
+            n,
+            "rows, one per mean",
+        )?;
+        check_len(
+            path,
+            "opacity_logits",
+            self.opacity_logits.len(),
+            n,
+            "values, one per mean",
+        )?;
         check_len(path, "sh_dc", self.sh_dc.len(), n, "rows, one per mean")?;
         if self.sh_degree > 3 {
             return Err(meta_err(path, "sh_degree", "an integer 0, 1, 2 or 3"));
@@ -102,33 +126,68 @@ impl FileKind for Gaussians {
                 return Err(crate::error::FormatError::MissingTensor {
                     path: path.to_string(),
                     tensor: "sh_rest".to_string(),
-                    expected: format!("[N, {}, 3] for sh_degree {}", self.sh_rest_coeffs(), self.sh_degree),
+                    expected: format!(
+                        "[N, {}, 3] for sh_degree {}",
+                        self.sh_rest_coeffs(),
+                        self.sh_degree
+                    ),
                 })
             }
             Some(_) if self.sh_degree == 0 => {
-                return Err(meta_err(path, "sh_degree", "a degree >= 1 when tensor `sh_rest` is present"));
+                return Err(meta_err(
+                    path,
+                    "sh_degree",
+                    "a degree >= 1 when tensor `sh_rest` is present",
+                ));
             }
             Some(rest) => {
                 let coeffs = self.sh_rest_coeffs();
                 if rest.len() != n * coeffs * 3 {
-                    return Err(shape_err(path, "sh_rest", vec![rest.len()], format!("{n} x {coeffs} x 3 values")));
+                    return Err(shape_err(
+                        path,
+                        "sh_rest",
+                        vec![rest.len()],
+                        format!("{n} x {coeffs} x 3 values"),
+                    ));
                 }
                 check_finite(path, "sh_rest", rest)?;
             }
             None => {}
         }
         check_finite(path, "means", bytemuck::cast_slice::<_, f32>(&self.means))?;
-        check_finite(path, "log_scales", bytemuck::cast_slice::<_, f32>(&self.log_scales))?;
-        check_finite(path, "rotations", bytemuck::cast_slice::<_, f32>(&self.rotations))?;
+        check_finite(
+            path,
+            "log_scales",
+            bytemuck::cast_slice::<_, f32>(&self.log_scales),
+        )?;
+        check_finite(
+            path,
+            "rotations",
+            bytemuck::cast_slice::<_, f32>(&self.rotations),
+        )?;
         check_finite(path, "opacity_logits", &self.opacity_logits)?;
         check_finite(path, "sh_dc", bytemuck::cast_slice::<_, f32>(&self.sh_dc))?;
-        if let Some(i) = self.rotations.iter().position(|q| q.iter().all(|c| *c == 0.0)) {
-            return Err(invalid(path, "rotations", format!("row {i} is the zero quaternion")));
+        if let Some(i) = self
+            .rotations
+            .iter()
+            .position(|q| q.iter().all(|c| *c == 0.0))
+        {
+            return Err(invalid(
+                path,
+                "rotations",
+                format!("row {i} is the zero quaternion"),
+            ));
         }
         if let Some(ids) = &self.class_ids {
             check_len(path, "class_ids", ids.len(), n, "values, one per mean")?;
             if let Some(i) = ids.iter().position(|c| *c < -1) {
-                return Err(out_of_range(path, "class_ids", i, ids[i], "a class id >= 0 or -1 for none"));
+                return Err(out_of_range(
+                    path,
+                    "class_ids",
+                    i,
+                    ids[i],
+                    "a class id >= 0 or -1 for none",
+                ));
             }
         }
         Ok(())

@@ -9,7 +9,10 @@ use serde_json::{json, Value};
 use crate::container::Container;
 use crate::error::{FormatError, Result};
 use crate::kind::{FileKind, Kind};
-use crate::{Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection, SparseMatches, VertexLabels, ViewMaps};
+use crate::{
+    Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
+    SparseMatches, VertexLabels, ViewMaps,
+};
 
 /// The outcome of inspecting one file.
 #[derive(Debug)]
@@ -32,13 +35,19 @@ pub fn inspect(path: impl AsRef<Path>) -> Report {
         }
         Err(e) => (None, Err(e)),
     };
-    let metadata: BTreeMap<String, String> = c.as_ref().map(|c| c.metadata().clone()).unwrap_or_default();
+    let metadata: BTreeMap<String, String> =
+        c.as_ref().map(|c| c.metadata().clone()).unwrap_or_default();
     let tensors: serde_json::Map<String, Value> = c
         .as_ref()
         .map(|c| {
             c.tensors()
                 .iter()
-                .map(|(n, t)| (n.clone(), json!({"dtype": t.dtype.name(), "shape": t.shape})))
+                .map(|(n, t)| {
+                    (
+                        n.clone(),
+                        json!({"dtype": t.dtype.name(), "shape": t.shape}),
+                    )
+                })
                 .collect()
         })
         .unwrap_or_default();

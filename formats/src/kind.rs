@@ -113,8 +113,8 @@ pub fn check_version(c: &Container) -> Result<()> {
     let found = c.metadata().get("format_version");
     let ok = found.is_some_and(|v| {
         let mut parts = v.split('.');
-        let major = parts.next().and_then(|p| parse_decimal(p));
-        let minor = parts.next().and_then(|p| parse_decimal(p));
+        let major = parts.next().and_then(parse_decimal);
+        let minor = parts.next().and_then(parse_decimal);
         major == Some(MAJOR_VERSION) && minor.is_some() && parts.next().is_none()
     });
     if ok {

@@ -87,20 +87,52 @@ impl FileKind for Masks {
 
     fn validate(&self, path: &str) -> Result<()> {
         let v = self.view_names.len();
-        check_len(path, "labels", self.labels.len(), v * self.height * self.width, "pixels (V x H x W)")?;
-        check_len(path, "mask_offsets", self.mask_offsets.len(), v + 1, "offsets (V + 1)")?;
+        check_len(
+            path,
+            "labels",
+            self.labels.len(),
+            v * self.height * self.width,
+            "pixels (V x H x W)",
+        )?;
+        check_len(
+            path,
+            "mask_offsets",
+            self.mask_offsets.len(),
+            v + 1,
+            "offsets (V + 1)",
+        )?;
         if self.dim == 0 {
-            return Err(crate::check::shape_err(path, "features", vec![0, 0], "[M, D] with D >= 1".to_string()));
+            return Err(crate::check::shape_err(
+                path,
+                "features",
+                vec![0, 0],
+                "[M, D] with D >= 1".to_string(),
+            ));
         }
         let m = self.features.len() / self.dim;
-        check_len(path, "features", self.features.len(), m * self.dim, "values (M x D)")?;
+        check_len(
+            path,
+            "features",
+            self.features.len(),
+            m * self.dim,
+            "values (M x D)",
+        )?;
         check_offsets(path, "mask_offsets", &self.mask_offsets, m as u64)?;
         let none = self.labels.none_value();
         let plane = self.height * self.width;
         for view in 0..v {
             let count = self.masks_in_view(view) as u64;
             if count > u64::from(none) {
-                return Err(out_of_range(path, "mask_offsets", view + 1, self.mask_offsets[view + 1], format!("at most {none} masks per view for {} labels", self.labels.dtype())));
+                return Err(out_of_range(
+                    path,
+                    "mask_offsets",
+                    view + 1,
+                    self.mask_offsets[view + 1],
+                    format!(
+                        "at most {none} masks per view for {} labels",
+                        self.labels.dtype()
+                    ),
+                ));
             }
             check_plane(path, &self.labels, view * plane, plane, count)?;
         }
@@ -140,18 +172,33 @@ impl FileKind for Masks {
 /// Every label of one view's plane is a local mask index `< count` or "no mask".
 fn check_plane(path: &str, labels: &Labels, start: usize, len: usize, count: u64) -> Result<()> {
     let bad = |i: usize, value: u64| {
-        out_of_range(path, "labels", i, value, format!("a mask index < {count} of this view or the reserved {}", labels.none_value()))
+        out_of_range(
+            path,
+            "labels",
+            i,
+            value,
+            format!(
+                "a mask index < {count} of this view or the reserved {}",
+                labels.none_value()
+            ),
+        )
     };
     match labels {
         Labels::U16(b) => {
             let none = u16::MAX;
-            if let Some(i) = b[start..start + len].iter().position(|l| *l != none && u64::from(*l) >= count) {
+            if let Some(i) = b[start..start + len]
+                .iter()
+                .position(|l| *l != none && u64::from(*l) >= count)
+            {
                 return Err(bad(start + i, u64::from(b[start + i])));
             }
         }
         Labels::U32(b) => {
             let none = u32::MAX;
-            if let Some(i) = b[start..start + len].iter().position(|l| *l != none && u64::from(*l) >= count) {
+            if let Some(i) = b[start..start + len]
+                .iter()
+                .position(|l| *l != none && u64::from(*l) >= count)
+            {
                 return Err(bad(start + i, u64::from(b[start + i])));
             }
         }

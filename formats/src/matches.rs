@@ -86,8 +86,20 @@ impl FileKind for Matches {
 
     fn validate(&self, path: &str) -> Result<()> {
         let cells = self.pairs.len() * self.height * self.width;
-        check_len(path, "warp", self.warp.len(), cells * 2, "values (P x H x W x 2)")?;
-        check_len(path, "certainty", self.certainty.len(), cells, "values (P x H x W)")?;
+        check_len(
+            path,
+            "warp",
+            self.warp.len(),
+            cells * 2,
+            "values (P x H x W x 2)",
+        )?;
+        check_len(
+            path,
+            "certainty",
+            self.certainty.len(),
+            cells,
+            "values (P x H x W)",
+        )?;
         check_pairs(path, &self.pairs, self.num_views)?;
         check_finite_floats(path, "warp", &self.warp)?;
         check_unit_interval(path, "certainty", &self.certainty)
@@ -168,13 +180,39 @@ impl FileKind for SparseMatches {
 
     fn validate(&self, path: &str) -> Result<()> {
         let n = self.points_i.len();
-        check_len(path, "pair_offsets", self.pair_offsets.len(), self.pairs.len() + 1, "offsets (P + 1)")?;
-        check_len(path, "points_j", self.points_j.len(), n, "rows, one per row of points_i")?;
-        check_len(path, "certainty", self.certainty.len(), n, "values, one per row of points_i")?;
+        check_len(
+            path,
+            "pair_offsets",
+            self.pair_offsets.len(),
+            self.pairs.len() + 1,
+            "offsets (P + 1)",
+        )?;
+        check_len(
+            path,
+            "points_j",
+            self.points_j.len(),
+            n,
+            "rows, one per row of points_i",
+        )?;
+        check_len(
+            path,
+            "certainty",
+            self.certainty.len(),
+            n,
+            "values, one per row of points_i",
+        )?;
         check_pairs(path, &self.pairs, self.num_views)?;
         check_offsets(path, "pair_offsets", &self.pair_offsets, n as u64)?;
-        check_finite(path, "points_i", bytemuck::cast_slice::<_, f32>(&self.points_i))?;
-        check_finite(path, "points_j", bytemuck::cast_slice::<_, f32>(&self.points_j))?;
+        check_finite(
+            path,
+            "points_i",
+            bytemuck::cast_slice::<_, f32>(&self.points_i),
+        )?;
+        check_finite(
+            path,
+            "points_j",
+            bytemuck::cast_slice::<_, f32>(&self.points_j),
+        )?;
         check_unit_interval(path, "certainty", &Floats::F32(self.certainty.clone()))
     }
 
@@ -206,14 +244,28 @@ fn check_pairs(path: &str, pairs: &[[u32; 2]], num_views: usize) -> Result<()> {
     for (p, [i, j]) in pairs.iter().enumerate() {
         for (k, v) in [i, j].into_iter().enumerate() {
             if *v as usize >= num_views {
-                return Err(out_of_range(path, "pairs", 2 * p + k, v, format!("a view index < {num_views} (metadata num_views)")));
+                return Err(out_of_range(
+                    path,
+                    "pairs",
+                    2 * p + k,
+                    v,
+                    format!("a view index < {num_views} (metadata num_views)"),
+                ));
             }
         }
         if i == j {
-            return Err(invalid(path, "pairs", format!("row {p} pairs view {i} with itself")));
+            return Err(invalid(
+                path,
+                "pairs",
+                format!("row {p} pairs view {i} with itself"),
+            ));
         }
         if !seen.insert((*i, *j)) {
-            return Err(invalid(path, "pairs", format!("row {p} repeats the ordered pair ({i}, {j})")));
+            return Err(invalid(
+                path,
+                "pairs",
+                format!("row {p} repeats the ordered pair ({i}, {j})"),
+            ));
         }
     }
     Ok(())

@@ -44,7 +44,11 @@ impl FileKind for Mesh {
 
     fn validate(&self, path: &str) -> Result<()> {
         let v = self.vertices.len();
-        check_finite(path, "vertices", bytemuck::cast_slice::<_, f32>(&self.vertices))?;
+        check_finite(
+            path,
+            "vertices",
+            bytemuck::cast_slice::<_, f32>(&self.vertices),
+        )?;
         if let Some(c) = &self.colors {
             check_len(path, "colors", c.len(), v, "rows, one per vertex")?;
         }
@@ -55,7 +59,14 @@ impl FileKind for Mesh {
             check_len(path, "instances", l.len(), v, "values, one per vertex")?;
         }
         if let Some(f) = &self.faces {
-            check_ids(path, "faces", bytemuck::cast_slice::<_, u32>(f), v as u64, None, "the vertices")?;
+            check_ids(
+                path,
+                "faces",
+                bytemuck::cast_slice::<_, u32>(f),
+                v as u64,
+                None,
+                "the vertices",
+            )?;
         }
         Ok(())
     }
@@ -84,7 +95,12 @@ impl FileKind for Mesh {
         BTreeMap::from([
             ("vertices", self.vertices.len() as u64),
             ("faces", self.faces.as_ref().map_or(0, |f| f.len()) as u64),
-            ("labelled", self.labels.as_ref().map_or(0, |l| l.iter().filter(|x| **x != 0).count()) as u64),
+            (
+                "labelled",
+                self.labels
+                    .as_ref()
+                    .map_or(0, |l| l.iter().filter(|x| **x != 0).count()) as u64,
+            ),
         ])
     }
 }

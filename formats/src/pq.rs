@@ -3,7 +3,9 @@
 
 use std::collections::BTreeMap;
 
-use crate::check::{check_finite, check_flags, check_len, invalid, meta_err, out_of_range, shape_err, TensorReader};
+use crate::check::{
+    check_finite, check_flags, check_len, invalid, meta_err, out_of_range, shape_err, TensorReader,
+};
 use crate::container::{Buffer, Container};
 use crate::error::Result;
 use crate::kind::{FileKind, Kind};
@@ -76,10 +78,27 @@ impl FileKind for Pq {
     fn validate(&self, path: &str) -> Result<()> {
         let n = self.len();
         if self.m == 0 || self.dsub == 0 {
-            return Err(shape_err(path, "centroids", vec![self.m, KSUB, self.dsub], "[M, 256, dsub] with M, dsub >= 1".to_string()));
+            return Err(shape_err(
+                path,
+                "centroids",
+                vec![self.m, KSUB, self.dsub],
+                "[M, 256, dsub] with M, dsub >= 1".to_string(),
+            ));
         }
-        check_len(path, "centroids", self.centroids.len(), self.m * KSUB * self.dsub, "values (M x 256 x dsub)")?;
-        check_len(path, "codes", self.codes.len(), n * self.m, "values (N x M, N from `valid`)")?;
+        check_len(
+            path,
+            "centroids",
+            self.centroids.len(),
+            self.m * KSUB * self.dsub,
+            "values (M x 256 x dsub)",
+        )?;
+        check_len(
+            path,
+            "codes",
+            self.codes.len(),
+            n * self.m,
+            "values (N x M, N from `valid`)",
+        )?;
         check_len(path, "norms", self.norms.len(), n, "values, one per vector")?;
         check_finite(path, "centroids", &self.centroids)?;
         check_flags(path, "valid", &self.valid)?;
@@ -88,7 +107,11 @@ impl FileKind for Pq {
             return Err(out_of_range(path, "norms", i, self.norms[i], "a norm >= 0"));
         }
         if let Some(i) = (0..n).find(|&i| self.valid[i] == 0 && self.norms[i] != 0.0) {
-            return Err(invalid(path, "norms", format!("vector {i} is invalid but has norm {}", self.norms[i])));
+            return Err(invalid(
+                path,
+                "norms",
+                format!("vector {i} is invalid but has norm {}", self.norms[i]),
+            ));
         }
         Ok(())
     }
@@ -112,7 +135,10 @@ impl FileKind for Pq {
             ("dim", self.dim() as u64),
             ("m", self.m as u64),
             ("ksub", KSUB as u64),
-            ("valid", self.valid.iter().filter(|v| **v == 1).count() as u64),
+            (
+                "valid",
+                self.valid.iter().filter(|v| **v == 1).count() as u64,
+            ),
         ])
     }
 }

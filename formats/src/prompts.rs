@@ -66,23 +66,48 @@ impl FileKind for Prompts {
     fn validate(&self, path: &str) -> Result<()> {
         let q = self.len();
         if self.dim == 0 {
-            return Err(crate::check::shape_err(path, "embeddings", vec![q, 0], "[Q, D] with D >= 1".to_string()));
+            return Err(crate::check::shape_err(
+                path,
+                "embeddings",
+                vec![q, 0],
+                "[Q, D] with D >= 1".to_string(),
+            ));
         }
-        check_len(path, "embeddings", self.embeddings.len(), q * self.dim, "values (Q x D, Q from metadata `names`)")?;
+        check_len(
+            path,
+            "embeddings",
+            self.embeddings.len(),
+            q * self.dim,
+            "values (Q x D, Q from metadata `names`)",
+        )?;
         let mut seen = BTreeSet::new();
         for (i, n) in self.names.iter().enumerate() {
             if n.is_empty() || !seen.insert(n.as_str()) {
-                return Err(meta_err(path, "names", &format!("unique non-empty names (entry {i} {n:?} is empty or repeated)")));
+                return Err(meta_err(
+                    path,
+                    "names",
+                    &format!("unique non-empty names (entry {i} {n:?} is empty or repeated)"),
+                ));
             }
         }
         check_finite(path, "embeddings", &self.embeddings)?;
         if let Some(i) = (0..q).find(|&i| self.embedding(i).iter().all(|v| *v == 0.0)) {
-            return Err(invalid(path, "embeddings", format!("row {i} ({:?}) is all zero", self.names[i])));
+            return Err(invalid(
+                path,
+                "embeddings",
+                format!("row {i} ({:?}) is all zero", self.names[i]),
+            ));
         }
         if let Some(ids) = &self.class_ids {
             check_len(path, "class_ids", ids.len(), q, "values, one per prompt")?;
             if let Some(i) = ids.iter().position(|c| *c < -1) {
-                return Err(out_of_range(path, "class_ids", i, ids[i], "a class id >= 0 or -1 for none"));
+                return Err(out_of_range(
+                    path,
+                    "class_ids",
+                    i,
+                    ids[i],
+                    "a class id >= 0 or -1 for none",
+                ));
             }
         }
         Ok(())

@@ -40,7 +40,13 @@ impl Proposals {
     /// Checks this file against the masks file it was built from: one entry per mask,
     /// and view counts that match the masks' views.
     pub fn check_against(&self, masks: &Masks, path: &str) -> Result<()> {
-        check_len(path, "mask_proposal", self.mask_proposal.len(), masks.num_masks(), "entries, one per mask of the masks file")?;
+        check_len(
+            path,
+            "mask_proposal",
+            self.mask_proposal.len(),
+            masks.num_masks(),
+            "entries, one per mask of the masks file",
+        )?;
         let mut views: Vec<Vec<usize>> = vec![Vec::new(); self.len()];
         for (m, p) in self.mask_proposal.iter().enumerate() {
             if *p != NO_PROPOSAL {
@@ -50,7 +56,15 @@ impl Proposals {
         for (p, mut v) in views.into_iter().enumerate() {
             v.dedup();
             if v.len() != self.proposal_views[p] as usize {
-                return Err(invalid(path, "proposal_views", format!("proposal {p} records {} views but its masks span {}", self.proposal_views[p], v.len())));
+                return Err(invalid(
+                    path,
+                    "proposal_views",
+                    format!(
+                        "proposal {p} records {} views but its masks span {}",
+                        self.proposal_views[p],
+                        v.len()
+                    ),
+                ));
             }
         }
         Ok(())
@@ -72,21 +86,56 @@ impl FileKind for Proposals {
 
     fn validate(&self, path: &str) -> Result<()> {
         let p = self.len();
-        check_len(path, "proposal_views", self.proposal_views.len(), p, "values, one per proposal")?;
-        check_ids(path, "mask_proposal", &self.mask_proposal, p as u64, Some(u64::from(NO_PROPOSAL)), "the proposals")?;
+        check_len(
+            path,
+            "proposal_views",
+            self.proposal_views.len(),
+            p,
+            "values, one per proposal",
+        )?;
+        check_ids(
+            path,
+            "mask_proposal",
+            &self.mask_proposal,
+            p as u64,
+            Some(u64::from(NO_PROPOSAL)),
+            "the proposals",
+        )?;
         let mut members = vec![0u64; p];
         for id in self.mask_proposal.iter().filter(|id| **id != NO_PROPOSAL) {
             members[*id as usize] += 1;
         }
-        for (i, (size, views)) in self.proposal_size.iter().zip(self.proposal_views.iter()).enumerate() {
+        for (i, (size, views)) in self
+            .proposal_size
+            .iter()
+            .zip(self.proposal_views.iter())
+            .enumerate()
+        {
             if u64::from(*size) != members[i] {
-                return Err(invalid(path, "proposal_size", format!("proposal {i} records {size} members but mask_proposal assigns {}", members[i])));
+                return Err(invalid(
+                    path,
+                    "proposal_size",
+                    format!(
+                        "proposal {i} records {size} members but mask_proposal assigns {}",
+                        members[i]
+                    ),
+                ));
             }
             if *size == 0 {
-                return Err(invalid(path, "proposal_size", format!("proposal {i} is empty")));
+                return Err(invalid(
+                    path,
+                    "proposal_size",
+                    format!("proposal {i} is empty"),
+                ));
             }
             if *views == 0 || views > size {
-                return Err(crate::check::out_of_range(path, "proposal_views", i, views, format!("a view count in 1..={size} (its member count)")));
+                return Err(crate::check::out_of_range(
+                    path,
+                    "proposal_views",
+                    i,
+                    views,
+                    format!("a view count in 1..={size} (its member count)"),
+                ));
             }
         }
         Ok(())
@@ -96,16 +145,26 @@ impl FileKind for Proposals {
         for (k, val) in &self.extra {
             w.meta(k, val.clone());
         }
-        w.tensor("mask_proposal", &[self.mask_proposal.len()], &self.mask_proposal)
-            .tensor("proposal_size", &[self.len()], &self.proposal_size)
-            .tensor("proposal_views", &[self.len()], &self.proposal_views);
+        w.tensor(
+            "mask_proposal",
+            &[self.mask_proposal.len()],
+            &self.mask_proposal,
+        )
+        .tensor("proposal_size", &[self.len()], &self.proposal_size)
+        .tensor("proposal_views", &[self.len()], &self.proposal_views);
     }
 
     fn counts(&self) -> BTreeMap<&'static str, u64> {
         BTreeMap::from([
             ("masks", self.mask_proposal.len() as u64),
             ("proposals", self.len() as u64),
-            ("assigned_masks", self.mask_proposal.iter().filter(|p| **p != NO_PROPOSAL).count() as u64),
+            (
+                "assigned_masks",
+                self.mask_proposal
+                    .iter()
+                    .filter(|p| **p != NO_PROPOSAL)
+                    .count() as u64,
+            ),
         ])
     }
 }

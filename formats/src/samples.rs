@@ -37,13 +37,42 @@ pub fn cameras() -> Cameras {
 /// Four Gaussians with SH degree 1 and class ids.
 pub fn gaussians() -> Gaussians {
     Gaussians {
-        means: vec![[0.0, 0.0, 0.0], [0.5, -0.25, 1.0], [-1.0, 2.0, 0.125], [3.0, 0.0, -2.0]].into(),
-        log_scales: vec![[-2.0, -2.0, -2.0], [-1.5, -3.0, -2.5], [0.0, 0.0, 0.0], [-4.0, -4.0, -1.0]].into(),
-        rotations: vec![[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.5, 0.5, 0.5, 0.5], [2.0, 0.0, 0.0, 0.0]].into(),
+        means: vec![
+            [0.0, 0.0, 0.0],
+            [0.5, -0.25, 1.0],
+            [-1.0, 2.0, 0.125],
+            [3.0, 0.0, -2.0],
+        ]
+        .into(),
+        log_scales: vec![
+            [-2.0, -2.0, -2.0],
+            [-1.5, -3.0, -2.5],
+            [0.0, 0.0, 0.0],
+            [-4.0, -4.0, -1.0],
+        ]
+        .into(),
+        rotations: vec![
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.5, 0.5, 0.5, 0.5],
+            [2.0, 0.0, 0.0, 0.0],
+        ]
+        .into(),
         opacity_logits: vec![0.0, 2.0, -1.0, 20.0].into(),
-        sh_dc: vec![[0.1, 0.2, 0.3], [-0.5, 0.0, 0.5], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]].into(),
+        sh_dc: vec![
+            [0.1, 0.2, 0.3],
+            [-0.5, 0.0, 0.5],
+            [1.0, 1.0, 1.0],
+            [0.0, 0.0, 0.0],
+        ]
+        .into(),
         sh_degree: 1,
-        sh_rest: Some((0..4 * 3 * 3).map(|i| i as f32 * 0.01 - 0.1).collect::<Vec<f32>>().into()),
+        sh_rest: Some(
+            (0..4 * 3 * 3)
+                .map(|i| i as f32 * 0.01 - 0.1)
+                .collect::<Vec<f32>>()
+                .into(),
+        ),
         class_ids: Some(vec![0, 1, -1, 2].into()),
         extra: BTreeMap::new(),
     }
@@ -59,7 +88,13 @@ fn unit_rows(rows: &[[f32; 4]]) -> Vec<f32> {
 }
 
 fn mask_features() -> Vec<f32> {
-    unit_rows(&[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 1.0, 0.0], [1.0, 2.0, 3.0, 4.0], [0.0, 0.0, 0.0, 1.0], [0.5, -0.5, 0.5, -0.5]])
+    unit_rows(&[
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 1.0, 0.0],
+        [1.0, 2.0, 3.0, 4.0],
+        [0.0, 0.0, 0.0, 1.0],
+        [0.5, -0.5, 0.5, -0.5],
+    ])
 }
 
 /// Two views of 4x3 label maps with 3 + 2 masks, U16 labels and F16 features.
@@ -80,7 +115,13 @@ pub fn masks() -> Masks {
         height: 3,
         labels: Labels::U16(labels.into()),
         mask_offsets: vec![0, 3, 5].into(),
-        features: Floats::F16(feats.into_iter().map(f16::from_f32).collect::<Vec<_>>().into()),
+        features: Floats::F16(
+            feats
+                .into_iter()
+                .map(f16::from_f32)
+                .collect::<Vec<_>>()
+                .into(),
+        ),
         dim: 4,
         extra: BTreeMap::new(),
     }
@@ -89,7 +130,9 @@ pub fn masks() -> Masks {
 /// The same masks with U32 labels and F32 features.
 pub fn masks_wide() -> Masks {
     let m = masks();
-    let labels: Vec<u32> = (0..m.labels.len()).map(|i| m.labels.get(i).unwrap_or(u32::MAX)).collect();
+    let labels: Vec<u32> = (0..m.labels.len())
+        .map(|i| m.labels.get(i).unwrap_or(u32::MAX))
+        .collect();
     Masks {
         labels: Labels::U32(labels.into()),
         features: Floats::F32(mask_features().into()),
@@ -105,8 +148,18 @@ pub fn matches() -> Matches {
         pairs: vec![[0, 1], [1, 0]].into(),
         height: 2,
         width: 3,
-        warp: Floats::F32((0..cells * 2).map(|i| (i as f32 / 12.0) - 1.0).collect::<Vec<_>>().into()),
-        certainty: Floats::F32((0..cells).map(|i| (i % 5) as f32 / 4.0).collect::<Vec<_>>().into()),
+        warp: Floats::F32(
+            (0..cells * 2)
+                .map(|i| (i as f32 / 12.0) - 1.0)
+                .collect::<Vec<_>>()
+                .into(),
+        ),
+        certainty: Floats::F32(
+            (0..cells)
+                .map(|i| (i % 5) as f32 / 4.0)
+                .collect::<Vec<_>>()
+                .into(),
+        ),
         coords: WarpCoords::Normalized,
         extra: BTreeMap::new(),
     }
@@ -115,7 +168,15 @@ pub fn matches() -> Matches {
 /// The same matches stored as F16, in pixel coordinates.
 pub fn matches_half() -> Matches {
     let m = matches();
-    let half = |f: &Floats| Floats::F16(f.to_f32_vec().into_iter().map(f16::from_f32).collect::<Vec<_>>().into());
+    let half = |f: &Floats| {
+        Floats::F16(
+            f.to_f32_vec()
+                .into_iter()
+                .map(f16::from_f32)
+                .collect::<Vec<_>>()
+                .into(),
+        )
+    };
     Matches {
         warp: half(&m.warp),
         certainty: half(&m.certainty),
@@ -131,7 +192,14 @@ pub fn sparse_matches() -> SparseMatches {
         pairs: vec![[0, 1], [2, 0]].into(),
         pair_offsets: vec![0, 3, 5].into(),
         points_i: vec![[0.5, 0.5], [3.25, 2.0], [7.5, 5.5], [1.0, 1.0], [2.0, 2.5]].into(),
-        points_j: vec![[1.5, 0.5], [4.0, 2.25], [6.5, 5.0], [0.75, 1.25], [2.5, 2.0]].into(),
+        points_j: vec![
+            [1.5, 0.5],
+            [4.0, 2.25],
+            [6.5, 5.0],
+            [0.75, 1.25],
+            [2.5, 2.0],
+        ]
+        .into(),
         certainty: vec![1.0, 0.5, 0.25, 1.0, 0.75].into(),
         extra: BTreeMap::new(),
     }
@@ -149,7 +217,12 @@ pub fn proposals() -> Proposals {
 
 /// Four Gaussians, three registered.
 pub fn features() -> Features {
-    let mut f = unit_rows(&[[1.0, 0.0, 0.0, 0.0], [1.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [1.0, -2.0, 2.0, 4.0]]);
+    let mut f = unit_rows(&[
+        [1.0, 0.0, 0.0, 0.0],
+        [1.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0, 0.0],
+        [1.0, -2.0, 2.0, 4.0],
+    ]);
     f[8..12].fill(0.0);
     Features {
         features: Floats::F32(f.into()),
@@ -162,7 +235,9 @@ pub fn features() -> Features {
 
 /// M = 2 sub-quantisers of dsub = 2 over three vectors.
 pub fn pq() -> Pq {
-    let centroids: Vec<f32> = (0..2 * 256 * 2).map(|i| ((i * 37 % 101) as f32 - 50.0) / 64.0).collect();
+    let centroids: Vec<f32> = (0..2 * 256 * 2)
+        .map(|i| ((i * 37 % 101) as f32 - 50.0) / 64.0)
+        .collect();
     Pq {
         m: 2,
         dsub: 2,
@@ -179,7 +254,12 @@ pub fn prompts() -> Prompts {
     Prompts {
         names: vec!["chair".into(), "red mug".into(), "object".into()],
         dim: 4,
-        embeddings: unit_rows(&[[1.0, 0.1, 0.0, 0.0], [0.0, 1.0, 0.2, 0.0], [0.5, 0.5, 0.5, 0.5]]).into(),
+        embeddings: unit_rows(&[
+            [1.0, 0.1, 0.0, 0.0],
+            [0.0, 1.0, 0.2, 0.0],
+            [0.5, 0.5, 0.5, 0.5],
+        ])
+        .into(),
         class_ids: Some(vec![3, 7, -1].into()),
         extra: BTreeMap::new(),
     }
@@ -192,7 +272,10 @@ pub fn selection() -> Selection {
         num_gaussians: 10,
         gaussian_ids: vec![1, 4, 9].into(),
         scores: vec![0.31, 0.27, 0.5].into(),
-        extra: BTreeMap::from([("score".to_string(), "cosine".to_string()), ("threshold".to_string(), "0.25".to_string())]),
+        extra: BTreeMap::from([
+            ("score".to_string(), "cosine".to_string()),
+            ("threshold".to_string(), "0.25".to_string()),
+        ]),
     }
 }
 
@@ -208,7 +291,13 @@ pub fn vertex_labels() -> VertexLabels {
 /// A unit square of two triangles with labels.
 pub fn mesh() -> Mesh {
     Mesh {
-        vertices: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]].into(),
+        vertices: vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 1.0, 0.0],
+            [0.0, 1.0, 0.0],
+        ]
+        .into(),
         colors: Some(vec![[255, 0, 0], [0, 255, 0], [0, 0, 255], [128, 128, 128]].into()),
         faces: Some(vec![[0, 1, 2], [0, 2, 3]].into()),
         labels: Some(vec![1, 1, 2, 0].into()),
@@ -254,11 +343,17 @@ fn bytes_of(w: &FileWriter<'_>) -> Vec<u8> {
 }
 
 /// Rewrites the JSON header of a serialised file, keeping the data section.
-pub fn rewrite_header(bytes: &[u8], edit: impl FnOnce(&mut serde_json::Map<String, Value>)) -> Vec<u8> {
+pub fn rewrite_header(
+    bytes: &[u8],
+    edit: impl FnOnce(&mut serde_json::Map<String, Value>),
+) -> Vec<u8> {
     let n = u64::from_le_bytes(bytes[..8].try_into().unwrap_or([0; 8])) as usize;
-    let mut header: serde_json::Map<String, Value> = serde_json::from_slice(&bytes[8..8 + n]).unwrap_or_default();
+    let mut header: serde_json::Map<String, Value> =
+        serde_json::from_slice(&bytes[8..8 + n]).unwrap_or_default();
     edit(&mut header);
-    let mut text = serde_json::to_string(&Value::Object(header)).unwrap_or_default().into_bytes();
+    let mut text = serde_json::to_string(&Value::Object(header))
+        .unwrap_or_default()
+        .into_bytes();
     while (8 + text.len()) % 8 != 0 {
         text.push(b' ');
     }
@@ -277,9 +372,17 @@ struct Case {
 }
 
 /// Container-level defects that apply to every kind, built from its valid bytes.
-fn container_defects(valid: &[u8], tensor: &'static str) -> Vec<(&'static str, Vec<u8>, &'static str, Option<&'static str>)> {
+fn container_defects(
+    valid: &[u8],
+    tensor: &'static str,
+) -> Vec<(&'static str, Vec<u8>, &'static str, Option<&'static str>)> {
     let mut out = Vec::new();
-    out.push(("truncated", valid[..valid.len() - 3].to_vec(), "truncated", None));
+    out.push((
+        "truncated",
+        valid[..valid.len() - 3].to_vec(),
+        "truncated",
+        None,
+    ));
     out.push(("short", valid[..5].to_vec(), "truncated", None));
     let mut past = valid.to_vec();
     let huge = (valid.len() as u64) * 2;
@@ -301,7 +404,9 @@ fn container_defects(valid: &[u8], tensor: &'static str) -> Vec<(&'static str, V
     out.push((
         "overlap",
         rewrite_header(valid, |h| {
-            if let Some(Value::Array(off)) = h.get_mut(tensor).and_then(|t| t.get_mut("data_offsets")) {
+            if let Some(Value::Array(off)) =
+                h.get_mut(tensor).and_then(|t| t.get_mut("data_offsets"))
+            {
                 let b = off[0].as_u64().unwrap_or(0);
                 let e = off[1].as_u64().unwrap_or(0);
                 if b >= 4 {
@@ -317,10 +422,32 @@ fn container_defects(valid: &[u8], tensor: &'static str) -> Vec<(&'static str, V
     let mut trailing = valid.to_vec();
     trailing.extend_from_slice(&[0u8; 8]);
     out.push(("trailing_bytes", trailing, "header", None));
-    out.push(("wrong_kind", rewrite_header(valid, |h| set_meta(h, "format", "profuse.unknown")), "wrong_kind", Some("format")));
-    out.push(("no_metadata", rewrite_header(valid, |h| { h.remove("__metadata__"); }), "wrong_kind", Some("format")));
-    out.push(("wrong_version", rewrite_header(valid, |h| set_meta(h, "format_version", "2.0")), "wrong_version", Some("format_version")));
-    out.push(("bad_version", rewrite_header(valid, |h| set_meta(h, "format_version", "1")), "wrong_version", Some("format_version")));
+    out.push((
+        "wrong_kind",
+        rewrite_header(valid, |h| set_meta(h, "format", "profuse.unknown")),
+        "wrong_kind",
+        Some("format"),
+    ));
+    out.push((
+        "no_metadata",
+        rewrite_header(valid, |h| {
+            h.remove("__metadata__");
+        }),
+        "wrong_kind",
+        Some("format"),
+    ));
+    out.push((
+        "wrong_version",
+        rewrite_header(valid, |h| set_meta(h, "format_version", "2.0")),
+        "wrong_version",
+        Some("format_version"),
+    ));
+    out.push((
+        "bad_version",
+        rewrite_header(valid, |h| set_meta(h, "format_version", "1")),
+        "wrong_version",
+        Some("format_version"),
+    ));
     out
 }
 
@@ -415,7 +542,12 @@ fn without_tensor(valid: &[u8], tensor: &str) -> Vec<u8> {
         w.meta(k, v.clone());
     }
     for (name, info) in c.tensors().iter().filter(|(n, _)| n.as_str() != tensor) {
-        w.raw_tensor(name, info.dtype, &info.shape, c.raw(name).unwrap_or_default().to_vec());
+        w.raw_tensor(
+            name,
+            info.dtype,
+            &info.shape,
+            c.raw(name).unwrap_or_default().to_vec(),
+        );
     }
     bytes_of(&w)
 }
@@ -448,194 +580,780 @@ fn cases() -> Vec<Case> {
     let cam = cameras();
     let v = bytes_of(&unvalidated(&cam));
     let mut inv = container_defects(&v, "intrinsics");
-    inv.push(("missing_tensor", without_tensor(&v, "intrinsics"), "missing_tensor", Some("intrinsics")));
-    inv.push(("dtype", retype(&v, "intrinsics", Dtype::F32), "dtype", Some("intrinsics")));
-    inv.push(("shape", reshape(&v, "world_to_camera", &[2, 4, 3]), "shape", Some("world_to_camera")));
-    inv.push(("metadata", with_meta(&cam, "image_names", Some("images/a.png")), "metadata", Some("image_names")));
-    inv.push(("names_count", with_meta(&cam, "image_names", Some("[\"a.png\"]")), "shape", Some("image_size")));
-    inv.push(("out_of_range", mutated(&cam, |c| set(&mut c.image_size, 1, [8, 0])), "out_of_range", Some("image_size")));
-    inv.push(("focal", mutated(&cam, |c| set(&mut c.intrinsics, 0, [-1.0, 10.0, 4.0, 3.0])), "out_of_range", Some("intrinsics")));
-    inv.push(("non_finite", mutated(&cam, |c| set(&mut c.intrinsics, 1, [12.0, f64::NAN, 4.5, 3.0])), "non_finite", Some("intrinsics")));
-    inv.push(("invalid", mutated(&cam, |c| {
-        let mut m = c.world_to_camera[0];
-        m[0] = 1.1;
-        set(&mut c.world_to_camera, 0, m);
-    }), "invalid", Some("world_to_camera")));
-    inv.push(("reflection", mutated(&cam, |c| {
-        let mut m = c.world_to_camera[0];
-        m[10] = -1.0;
-        set(&mut c.world_to_camera, 0, m);
-    }), "invalid", Some("world_to_camera")));
-    inv.push(("distortion_nan", mutated(&cam, |c| {
-        if let Some(d) = &mut c.distortion { set(d, 0, [f64::INFINITY, 0.0, 0.0, 0.0]); }
-    }), "non_finite", Some("distortion")));
-    cases.push(Case { stem: "cameras", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "intrinsics"),
+        "missing_tensor",
+        Some("intrinsics"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "intrinsics", Dtype::F32),
+        "dtype",
+        Some("intrinsics"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "world_to_camera", &[2, 4, 3]),
+        "shape",
+        Some("world_to_camera"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&cam, "image_names", Some("images/a.png")),
+        "metadata",
+        Some("image_names"),
+    ));
+    inv.push((
+        "names_count",
+        with_meta(&cam, "image_names", Some("[\"a.png\"]")),
+        "shape",
+        Some("image_size"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&cam, |c| set(&mut c.image_size, 1, [8, 0])),
+        "out_of_range",
+        Some("image_size"),
+    ));
+    inv.push((
+        "focal",
+        mutated(&cam, |c| set(&mut c.intrinsics, 0, [-1.0, 10.0, 4.0, 3.0])),
+        "out_of_range",
+        Some("intrinsics"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&cam, |c| {
+            set(&mut c.intrinsics, 1, [12.0, f64::NAN, 4.5, 3.0])
+        }),
+        "non_finite",
+        Some("intrinsics"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&cam, |c| {
+            let mut m = c.world_to_camera[0];
+            m[0] = 1.1;
+            set(&mut c.world_to_camera, 0, m);
+        }),
+        "invalid",
+        Some("world_to_camera"),
+    ));
+    inv.push((
+        "reflection",
+        mutated(&cam, |c| {
+            let mut m = c.world_to_camera[0];
+            m[10] = -1.0;
+            set(&mut c.world_to_camera, 0, m);
+        }),
+        "invalid",
+        Some("world_to_camera"),
+    ));
+    inv.push((
+        "distortion_nan",
+        mutated(&cam, |c| {
+            if let Some(d) = &mut c.distortion {
+                set(d, 0, [f64::INFINITY, 0.0, 0.0, 0.0]);
+            }
+        }),
+        "non_finite",
+        Some("distortion"),
+    ));
+    cases.push(Case {
+        stem: "cameras",
+        valid: v,
+        invalid: inv,
+    });
 
     let g = gaussians();
     let v = bytes_of(&unvalidated(&g));
     let mut inv = container_defects(&v, "means");
-    inv.push(("missing_tensor", without_tensor(&v, "rotations"), "missing_tensor", Some("rotations")));
-    inv.push(("missing_sh_rest", without_tensor(&v, "sh_rest"), "missing_tensor", Some("sh_rest")));
-    inv.push(("dtype", retype(&v, "means", Dtype::F64), "dtype", Some("means")));
-    inv.push(("shape", reshape(&v, "opacity_logits", &[3]), "shape", Some("opacity_logits")));
-    inv.push(("sh_shape", reshape(&v, "sh_rest", &[4, 8, 3]), "shape", Some("sh_rest")));
-    inv.push(("metadata", with_meta(&g, "sh_degree", Some("4")), "metadata", Some("sh_degree")));
-    inv.push(("metadata_absent", with_meta(&g, "sh_degree", None), "metadata", Some("sh_degree")));
-    inv.push(("out_of_range", mutated(&g, |g| if let Some(c) = &mut g.class_ids { set(c, 2, -2) }), "out_of_range", Some("class_ids")));
-    inv.push(("non_finite", mutated(&g, |g| set(&mut g.opacity_logits, 3, f32::INFINITY)), "non_finite", Some("opacity_logits")));
-    inv.push(("means_nan", mutated(&g, |g| set(&mut g.means, 1, [0.0, f32::NAN, 0.0])), "non_finite", Some("means")));
-    inv.push(("invalid", mutated(&g, |g| set(&mut g.rotations, 2, [0.0; 4])), "invalid", Some("rotations")));
-    cases.push(Case { stem: "gaussians", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "rotations"),
+        "missing_tensor",
+        Some("rotations"),
+    ));
+    inv.push((
+        "missing_sh_rest",
+        without_tensor(&v, "sh_rest"),
+        "missing_tensor",
+        Some("sh_rest"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "means", Dtype::F64),
+        "dtype",
+        Some("means"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "opacity_logits", &[3]),
+        "shape",
+        Some("opacity_logits"),
+    ));
+    inv.push((
+        "sh_shape",
+        reshape(&v, "sh_rest", &[4, 8, 3]),
+        "shape",
+        Some("sh_rest"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&g, "sh_degree", Some("4")),
+        "metadata",
+        Some("sh_degree"),
+    ));
+    inv.push((
+        "metadata_absent",
+        with_meta(&g, "sh_degree", None),
+        "metadata",
+        Some("sh_degree"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&g, |g| {
+            if let Some(c) = &mut g.class_ids {
+                set(c, 2, -2)
+            }
+        }),
+        "out_of_range",
+        Some("class_ids"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&g, |g| set(&mut g.opacity_logits, 3, f32::INFINITY)),
+        "non_finite",
+        Some("opacity_logits"),
+    ));
+    inv.push((
+        "means_nan",
+        mutated(&g, |g| set(&mut g.means, 1, [0.0, f32::NAN, 0.0])),
+        "non_finite",
+        Some("means"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&g, |g| set(&mut g.rotations, 2, [0.0; 4])),
+        "invalid",
+        Some("rotations"),
+    ));
+    cases.push(Case {
+        stem: "gaussians",
+        valid: v,
+        invalid: inv,
+    });
 
     let m = masks();
     let v = bytes_of(&unvalidated(&m));
     let mut inv = container_defects(&v, "labels");
-    inv.push(("missing_tensor", without_tensor(&v, "mask_offsets"), "missing_tensor", Some("mask_offsets")));
-    inv.push(("dtype", retype(&v, "labels", Dtype::I32), "dtype", Some("labels")));
-    inv.push(("shape", reshape(&v, "mask_offsets", &[2]), "shape", Some("mask_offsets")));
-    inv.push(("metadata", with_meta(&m, "view_names", None), "metadata", Some("view_names")));
-    inv.push(("out_of_range", mutated(&m, |m| {
-        if let Labels::U16(b) = &mut m.labels { set(b, 13, 2) }
-    }), "out_of_range", Some("labels")));
-    inv.push(("offsets", mutated(&m, |m| m.mask_offsets = vec![0, 4, 3].into()), "out_of_range", Some("mask_offsets")));
-    inv.push(("non_finite", mutated(&m, |m| {
-        if let Floats::F16(b) = &mut m.features { set(b, 5, f16::NAN) }
-    }), "non_finite", Some("features")));
-    inv.push(("invalid", mutated(&m, |m| {
-        if let Floats::F16(b) = &mut m.features { set(b, 0, f16::from_f32(0.5)) }
-    }), "invalid", Some("features")));
-    cases.push(Case { stem: "masks", valid: v, invalid: inv });
-    cases.push(Case { stem: "masks_wide", valid: bytes_of(&unvalidated(&masks_wide())), invalid: Vec::new() });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "mask_offsets"),
+        "missing_tensor",
+        Some("mask_offsets"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "labels", Dtype::I32),
+        "dtype",
+        Some("labels"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "mask_offsets", &[2]),
+        "shape",
+        Some("mask_offsets"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&m, "view_names", None),
+        "metadata",
+        Some("view_names"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&m, |m| {
+            if let Labels::U16(b) = &mut m.labels {
+                set(b, 13, 2)
+            }
+        }),
+        "out_of_range",
+        Some("labels"),
+    ));
+    inv.push((
+        "offsets",
+        mutated(&m, |m| m.mask_offsets = vec![0, 4, 3].into()),
+        "out_of_range",
+        Some("mask_offsets"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&m, |m| {
+            if let Floats::F16(b) = &mut m.features {
+                set(b, 5, f16::NAN)
+            }
+        }),
+        "non_finite",
+        Some("features"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&m, |m| {
+            if let Floats::F16(b) = &mut m.features {
+                set(b, 0, f16::from_f32(0.5))
+            }
+        }),
+        "invalid",
+        Some("features"),
+    ));
+    cases.push(Case {
+        stem: "masks",
+        valid: v,
+        invalid: inv,
+    });
+    cases.push(Case {
+        stem: "masks_wide",
+        valid: bytes_of(&unvalidated(&masks_wide())),
+        invalid: Vec::new(),
+    });
 
     let mt = matches();
     let v = bytes_of(&unvalidated(&mt));
     let mut inv = container_defects(&v, "warp");
-    inv.push(("missing_tensor", without_tensor(&v, "certainty"), "missing_tensor", Some("certainty")));
-    inv.push(("dtype", retype(&v, "warp", Dtype::F64), "dtype", Some("warp")));
-    inv.push(("shape", reshape(&v, "certainty", &[2, 3, 2]), "shape", Some("certainty")));
-    inv.push(("metadata", with_meta(&mt, "coords", Some("meters")), "metadata", Some("coords")));
-    inv.push(("out_of_range", mutated(&mt, |m| set(&mut m.pairs, 1, [1, 2])), "out_of_range", Some("pairs")));
-    inv.push(("certainty_range", mutated(&mt, |m| {
-        if let Floats::F32(b) = &mut m.certainty { set(b, 4, 1.5) }
-    }), "out_of_range", Some("certainty")));
-    inv.push(("non_finite", mutated(&mt, |m| {
-        if let Floats::F32(b) = &mut m.warp { set(b, 7, f32::NAN) }
-    }), "non_finite", Some("warp")));
-    inv.push(("invalid", mutated(&mt, |m| set(&mut m.pairs, 1, [0, 1])), "invalid", Some("pairs")));
-    cases.push(Case { stem: "matches", valid: v, invalid: inv });
-    cases.push(Case { stem: "matches_half", valid: bytes_of(&unvalidated(&matches_half())), invalid: Vec::new() });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "certainty"),
+        "missing_tensor",
+        Some("certainty"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "warp", Dtype::F64),
+        "dtype",
+        Some("warp"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "certainty", &[2, 3, 2]),
+        "shape",
+        Some("certainty"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&mt, "coords", Some("meters")),
+        "metadata",
+        Some("coords"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&mt, |m| set(&mut m.pairs, 1, [1, 2])),
+        "out_of_range",
+        Some("pairs"),
+    ));
+    inv.push((
+        "certainty_range",
+        mutated(&mt, |m| {
+            if let Floats::F32(b) = &mut m.certainty {
+                set(b, 4, 1.5)
+            }
+        }),
+        "out_of_range",
+        Some("certainty"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&mt, |m| {
+            if let Floats::F32(b) = &mut m.warp {
+                set(b, 7, f32::NAN)
+            }
+        }),
+        "non_finite",
+        Some("warp"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&mt, |m| set(&mut m.pairs, 1, [0, 1])),
+        "invalid",
+        Some("pairs"),
+    ));
+    cases.push(Case {
+        stem: "matches",
+        valid: v,
+        invalid: inv,
+    });
+    cases.push(Case {
+        stem: "matches_half",
+        valid: bytes_of(&unvalidated(&matches_half())),
+        invalid: Vec::new(),
+    });
 
     let sm = sparse_matches();
     let v = bytes_of(&unvalidated(&sm));
     let mut inv = container_defects(&v, "points_i");
-    inv.push(("missing_tensor", without_tensor(&v, "pair_offsets"), "missing_tensor", Some("pair_offsets")));
-    inv.push(("dtype", retype(&v, "pair_offsets", Dtype::U32), "dtype", Some("pair_offsets")));
-    inv.push(("shape", reshape(&v, "points_j", &[4, 2]), "shape", Some("points_j")));
-    inv.push(("metadata", with_meta(&sm, "num_views", Some("three")), "metadata", Some("num_views")));
-    inv.push(("out_of_range", mutated(&sm, |m| m.pair_offsets = vec![0, 4, 3].into()), "out_of_range", Some("pair_offsets")));
-    inv.push(("non_finite", mutated(&sm, |m| set(&mut m.points_j, 2, [f32::INFINITY, 0.0])), "non_finite", Some("points_j")));
-    inv.push(("invalid", mutated(&sm, |m| set(&mut m.pairs, 1, [2, 2])), "invalid", Some("pairs")));
-    cases.push(Case { stem: "sparse_matches", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "pair_offsets"),
+        "missing_tensor",
+        Some("pair_offsets"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "pair_offsets", Dtype::U32),
+        "dtype",
+        Some("pair_offsets"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "points_j", &[4, 2]),
+        "shape",
+        Some("points_j"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&sm, "num_views", Some("three")),
+        "metadata",
+        Some("num_views"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&sm, |m| m.pair_offsets = vec![0, 4, 3].into()),
+        "out_of_range",
+        Some("pair_offsets"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&sm, |m| set(&mut m.points_j, 2, [f32::INFINITY, 0.0])),
+        "non_finite",
+        Some("points_j"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&sm, |m| set(&mut m.pairs, 1, [2, 2])),
+        "invalid",
+        Some("pairs"),
+    ));
+    cases.push(Case {
+        stem: "sparse_matches",
+        valid: v,
+        invalid: inv,
+    });
 
     let p = proposals();
     let v = bytes_of(&unvalidated(&p));
     let mut inv = container_defects(&v, "mask_proposal");
-    inv.push(("missing_tensor", without_tensor(&v, "proposal_views"), "missing_tensor", Some("proposal_views")));
-    inv.push(("dtype", retype(&v, "mask_proposal", Dtype::I64), "dtype", Some("mask_proposal")));
-    inv.push(("shape", reshape(&v, "proposal_views", &[3]), "shape", Some("proposal_views")));
-    inv.push(("out_of_range", mutated(&p, |p| set(&mut p.mask_proposal, 2, 2)), "out_of_range", Some("mask_proposal")));
-    inv.push(("views", mutated(&p, |p| set(&mut p.proposal_views, 0, 3)), "out_of_range", Some("proposal_views")));
-    inv.push(("invalid", mutated(&p, |p| set(&mut p.proposal_size, 1, 3)), "invalid", Some("proposal_size")));
-    cases.push(Case { stem: "proposals", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "proposal_views"),
+        "missing_tensor",
+        Some("proposal_views"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "mask_proposal", Dtype::I64),
+        "dtype",
+        Some("mask_proposal"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "proposal_views", &[3]),
+        "shape",
+        Some("proposal_views"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&p, |p| set(&mut p.mask_proposal, 2, 2)),
+        "out_of_range",
+        Some("mask_proposal"),
+    ));
+    inv.push((
+        "views",
+        mutated(&p, |p| set(&mut p.proposal_views, 0, 3)),
+        "out_of_range",
+        Some("proposal_views"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&p, |p| set(&mut p.proposal_size, 1, 3)),
+        "invalid",
+        Some("proposal_size"),
+    ));
+    cases.push(Case {
+        stem: "proposals",
+        valid: v,
+        invalid: inv,
+    });
 
     let f = features();
     let v = bytes_of(&unvalidated(&f));
     let mut inv = container_defects(&v, "features");
-    inv.push(("missing_tensor", without_tensor(&v, "valid"), "missing_tensor", Some("valid")));
-    inv.push(("dtype", retype(&v, "valid", Dtype::I32), "dtype", Some("valid")));
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "valid"),
+        "missing_tensor",
+        Some("valid"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "valid", Dtype::I32),
+        "dtype",
+        Some("valid"),
+    ));
     inv.push(("shape", reshape(&v, "valid", &[3]), "shape", Some("valid")));
-    inv.push(("out_of_range", mutated(&f, |f| set(&mut f.valid, 0, 2)), "out_of_range", Some("valid")));
-    inv.push(("non_finite", mutated(&f, |f| {
-        if let Floats::F32(b) = &mut f.features { set(b, 1, f32::NAN) }
-    }), "non_finite", Some("features")));
-    inv.push(("invalid", mutated(&f, |f| {
-        if let Floats::F32(b) = &mut f.features { set(b, 9, 0.25) }
-    }), "invalid", Some("features")));
-    inv.push(("weight_sum", mutated(&f, |f| if let Some(s) = &mut f.weight_sum { set(s, 2, 1.0) }), "invalid", Some("weight_sum")));
-    cases.push(Case { stem: "features", valid: v, invalid: inv });
+    inv.push((
+        "out_of_range",
+        mutated(&f, |f| set(&mut f.valid, 0, 2)),
+        "out_of_range",
+        Some("valid"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&f, |f| {
+            if let Floats::F32(b) = &mut f.features {
+                set(b, 1, f32::NAN)
+            }
+        }),
+        "non_finite",
+        Some("features"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&f, |f| {
+            if let Floats::F32(b) = &mut f.features {
+                set(b, 9, 0.25)
+            }
+        }),
+        "invalid",
+        Some("features"),
+    ));
+    inv.push((
+        "weight_sum",
+        mutated(&f, |f| {
+            if let Some(s) = &mut f.weight_sum {
+                set(s, 2, 1.0)
+            }
+        }),
+        "invalid",
+        Some("weight_sum"),
+    ));
+    cases.push(Case {
+        stem: "features",
+        valid: v,
+        invalid: inv,
+    });
 
     let q = pq();
     let v = bytes_of(&unvalidated(&q));
     let mut inv = container_defects(&v, "centroids");
-    inv.push(("missing_tensor", without_tensor(&v, "codes"), "missing_tensor", Some("codes")));
-    inv.push(("dtype", retype(&v, "centroids", Dtype::F64), "dtype", Some("centroids")));
-    inv.push(("shape", reshape(&v, "centroids", &[2, 128, 2]), "shape", Some("centroids")));
-    inv.push(("metadata", with_meta(&q, "metric", Some("l2")), "metadata", Some("metric")));
-    inv.push(("out_of_range", mutated(&q, |q| set(&mut q.valid, 1, 7)), "out_of_range", Some("valid")));
-    inv.push(("non_finite", mutated(&q, |q| set(&mut q.centroids, 100, f32::NEG_INFINITY)), "non_finite", Some("centroids")));
-    inv.push(("invalid", mutated(&q, |q| set(&mut q.norms, 2, 0.5)), "invalid", Some("norms")));
-    cases.push(Case { stem: "pq", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "codes"),
+        "missing_tensor",
+        Some("codes"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "centroids", Dtype::F64),
+        "dtype",
+        Some("centroids"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "centroids", &[2, 128, 2]),
+        "shape",
+        Some("centroids"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&q, "metric", Some("l2")),
+        "metadata",
+        Some("metric"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&q, |q| set(&mut q.valid, 1, 7)),
+        "out_of_range",
+        Some("valid"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&q, |q| set(&mut q.centroids, 100, f32::NEG_INFINITY)),
+        "non_finite",
+        Some("centroids"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&q, |q| set(&mut q.norms, 2, 0.5)),
+        "invalid",
+        Some("norms"),
+    ));
+    cases.push(Case {
+        stem: "pq",
+        valid: v,
+        invalid: inv,
+    });
 
     let pr = prompts();
     let v = bytes_of(&unvalidated(&pr));
     let mut inv = container_defects(&v, "embeddings");
-    inv.push(("missing_tensor", without_tensor(&v, "embeddings"), "missing_tensor", Some("embeddings")));
-    inv.push(("dtype", retype(&v, "embeddings", Dtype::F64), "dtype", Some("embeddings")));
-    inv.push(("shape", reshape(&v, "class_ids", &[2]), "shape", Some("class_ids")));
-    inv.push(("metadata", with_meta(&pr, "names", Some("[\"chair\",\"chair\",\"object\"]")), "metadata", Some("names")));
-    inv.push(("out_of_range", mutated(&pr, |p| if let Some(c) = &mut p.class_ids { set(c, 0, -5) }), "out_of_range", Some("class_ids")));
-    inv.push(("non_finite", mutated(&pr, |p| set(&mut p.embeddings, 6, f32::NAN)), "non_finite", Some("embeddings")));
-    inv.push(("invalid", mutated(&pr, |p| {
-        let mut e = p.embeddings.to_vec();
-        e[4..8].fill(0.0);
-        p.embeddings = e.into();
-    }), "invalid", Some("embeddings")));
-    cases.push(Case { stem: "prompts", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "embeddings"),
+        "missing_tensor",
+        Some("embeddings"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "embeddings", Dtype::F64),
+        "dtype",
+        Some("embeddings"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "class_ids", &[2]),
+        "shape",
+        Some("class_ids"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&pr, "names", Some("[\"chair\",\"chair\",\"object\"]")),
+        "metadata",
+        Some("names"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&pr, |p| {
+            if let Some(c) = &mut p.class_ids {
+                set(c, 0, -5)
+            }
+        }),
+        "out_of_range",
+        Some("class_ids"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&pr, |p| set(&mut p.embeddings, 6, f32::NAN)),
+        "non_finite",
+        Some("embeddings"),
+    ));
+    inv.push((
+        "invalid",
+        mutated(&pr, |p| {
+            let mut e = p.embeddings.to_vec();
+            e[4..8].fill(0.0);
+            p.embeddings = e.into();
+        }),
+        "invalid",
+        Some("embeddings"),
+    ));
+    cases.push(Case {
+        stem: "prompts",
+        valid: v,
+        invalid: inv,
+    });
 
     let s = selection();
     let v = bytes_of(&unvalidated(&s));
     let mut inv = container_defects(&v, "scores");
-    inv.push(("missing_tensor", without_tensor(&v, "scores"), "missing_tensor", Some("scores")));
-    inv.push(("dtype", retype(&v, "gaussian_ids", Dtype::I64), "dtype", Some("gaussian_ids")));
-    inv.push(("shape", reshape(&v, "scores", &[2]), "shape", Some("scores")));
-    inv.push(("metadata", with_meta(&s, "num_gaussians", Some("-3")), "metadata", Some("num_gaussians")));
-    inv.push(("out_of_range", mutated(&s, |s| set(&mut s.gaussian_ids, 2, 10)), "out_of_range", Some("gaussian_ids")));
-    inv.push(("unsorted", mutated(&s, |s| set(&mut s.gaussian_ids, 1, 1)), "out_of_range", Some("gaussian_ids")));
-    inv.push(("non_finite", mutated(&s, |s| set(&mut s.scores, 0, f32::NAN)), "non_finite", Some("scores")));
-    cases.push(Case { stem: "selection", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "scores"),
+        "missing_tensor",
+        Some("scores"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "gaussian_ids", Dtype::I64),
+        "dtype",
+        Some("gaussian_ids"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "scores", &[2]),
+        "shape",
+        Some("scores"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&s, "num_gaussians", Some("-3")),
+        "metadata",
+        Some("num_gaussians"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&s, |s| set(&mut s.gaussian_ids, 2, 10)),
+        "out_of_range",
+        Some("gaussian_ids"),
+    ));
+    inv.push((
+        "unsorted",
+        mutated(&s, |s| set(&mut s.gaussian_ids, 1, 1)),
+        "out_of_range",
+        Some("gaussian_ids"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&s, |s| set(&mut s.scores, 0, f32::NAN)),
+        "non_finite",
+        Some("scores"),
+    ));
+    cases.push(Case {
+        stem: "selection",
+        valid: v,
+        invalid: inv,
+    });
 
     let vl = vertex_labels();
     let v = bytes_of(&unvalidated(&vl));
     let mut inv = container_defects(&v, "labels");
-    inv.push(("missing_tensor", without_tensor(&v, "labels"), "missing_tensor", Some("labels")));
-    inv.push(("dtype", retype(&v, "labels", Dtype::U32), "dtype", Some("labels")));
-    inv.push(("shape", reshape(&v, "confidence", &[4]), "shape", Some("confidence")));
-    inv.push(("out_of_range", mutated(&vl, |v| set(&mut v.labels, 3, -7)), "out_of_range", Some("labels")));
-    inv.push(("confidence_range", mutated(&vl, |v| if let Some(c) = &mut v.confidence { set(c, 1, 1.5) }), "out_of_range", Some("confidence")));
-    inv.push(("non_finite", mutated(&vl, |v| if let Some(c) = &mut v.confidence { set(c, 1, f32::NAN) }), "non_finite", Some("confidence")));
-    cases.push(Case { stem: "vertex_labels", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "labels"),
+        "missing_tensor",
+        Some("labels"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "labels", Dtype::U32),
+        "dtype",
+        Some("labels"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "confidence", &[4]),
+        "shape",
+        Some("confidence"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&vl, |v| set(&mut v.labels, 3, -7)),
+        "out_of_range",
+        Some("labels"),
+    ));
+    inv.push((
+        "confidence_range",
+        mutated(&vl, |v| {
+            if let Some(c) = &mut v.confidence {
+                set(c, 1, 1.5)
+            }
+        }),
+        "out_of_range",
+        Some("confidence"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&vl, |v| {
+            if let Some(c) = &mut v.confidence {
+                set(c, 1, f32::NAN)
+            }
+        }),
+        "non_finite",
+        Some("confidence"),
+    ));
+    cases.push(Case {
+        stem: "vertex_labels",
+        valid: v,
+        invalid: inv,
+    });
 
     let me = mesh();
     let v = bytes_of(&unvalidated(&me));
     let mut inv = container_defects(&v, "vertices");
-    inv.push(("missing_tensor", without_tensor(&v, "vertices"), "missing_tensor", Some("vertices")));
-    inv.push(("dtype", retype(&v, "faces", Dtype::I64), "dtype", Some("faces")));
-    inv.push(("shape", reshape(&v, "labels", &[3]), "shape", Some("labels")));
-    inv.push(("out_of_range", mutated(&me, |m| if let Some(f) = &mut m.faces { set(f, 1, [0, 2, 4]) }), "out_of_range", Some("faces")));
-    inv.push(("non_finite", mutated(&me, |m| set(&mut m.vertices, 3, [0.0, f32::NAN, 0.0])), "non_finite", Some("vertices")));
-    cases.push(Case { stem: "mesh", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "vertices"),
+        "missing_tensor",
+        Some("vertices"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "faces", Dtype::I64),
+        "dtype",
+        Some("faces"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "labels", &[3]),
+        "shape",
+        Some("labels"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&me, |m| {
+            if let Some(f) = &mut m.faces {
+                set(f, 1, [0, 2, 4])
+            }
+        }),
+        "out_of_range",
+        Some("faces"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&me, |m| set(&mut m.vertices, 3, [0.0, f32::NAN, 0.0])),
+        "non_finite",
+        Some("vertices"),
+    ));
+    cases.push(Case {
+        stem: "mesh",
+        valid: v,
+        invalid: inv,
+    });
 
     let vm = view_maps();
     let v = bytes_of(&unvalidated(&vm));
     let mut inv = container_defects(&v, "depth");
-    inv.push(("missing_tensor", without_tensor(&v, "depth"), "missing_tensor", Some("depth")));
-    inv.push(("dtype", retype(&v, "depth", Dtype::F64), "dtype", Some("depth")));
-    inv.push(("shape", reshape(&v, "object_ids", &[2, 3, 2]), "shape", Some("object_ids")));
-    inv.push(("metadata", with_meta(&vm, "num_objects", None), "metadata", Some("num_objects")));
-    inv.push(("out_of_range", mutated(&vm, |m| if let Some(o) = &mut m.object_ids { set(o, 4, 3) }), "out_of_range", Some("object_ids")));
-    inv.push(("negative_depth", mutated(&vm, |m| set(&mut m.depth, 2, -1.0)), "out_of_range", Some("depth")));
-    inv.push(("non_finite", mutated(&vm, |m| set(&mut m.depth, 5, f32::INFINITY)), "non_finite", Some("depth")));
-    cases.push(Case { stem: "view_maps", valid: v, invalid: inv });
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "depth"),
+        "missing_tensor",
+        Some("depth"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "depth", Dtype::F64),
+        "dtype",
+        Some("depth"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "object_ids", &[2, 3, 2]),
+        "shape",
+        Some("object_ids"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&vm, "num_objects", None),
+        "metadata",
+        Some("num_objects"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&vm, |m| {
+            if let Some(o) = &mut m.object_ids {
+                set(o, 4, 3)
+            }
+        }),
+        "out_of_range",
+        Some("object_ids"),
+    ));
+    inv.push((
+        "negative_depth",
+        mutated(&vm, |m| set(&mut m.depth, 2, -1.0)),
+        "out_of_range",
+        Some("depth"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&vm, |m| set(&mut m.depth, 5, f32::INFINITY)),
+        "non_finite",
+        Some("depth"),
+    ));
+    cases.push(Case {
+        stem: "view_maps",
+        valid: v,
+        invalid: inv,
+    });
 
     cases
 }
@@ -686,13 +1404,20 @@ pub fn expected_json(vectors: &[Vector]) -> Value {
 
 fn describe_valid(c: &Container) -> Value {
     let counts = crate::inspect::validate_any(c).unwrap_or_default();
-    let kind = c.metadata().get("format").and_then(|f| Kind::from_format_name(f)).map(Kind::name);
+    let kind = c
+        .metadata()
+        .get("format")
+        .and_then(|f| Kind::from_format_name(f))
+        .map(Kind::name);
     let tensors: serde_json::Map<String, Value> = c
         .tensors()
         .iter()
         .map(|(n, t)| {
             let values = decode_values(t.dtype, c.raw(n).unwrap_or_default());
-            (n.clone(), json!({"dtype": t.dtype.name(), "shape": t.shape, "values": values}))
+            (
+                n.clone(),
+                json!({"dtype": t.dtype.name(), "shape": t.shape, "values": values}),
+            )
         })
         .collect();
     json!({"kind": kind, "counts": counts, "metadata": c.metadata(), "tensors": tensors})
@@ -701,8 +1426,17 @@ fn describe_valid(c: &Container) -> Value {
 fn decode_values(dtype: Dtype, raw: &[u8]) -> Vec<Value> {
     match dtype {
         Dtype::U8 => raw.iter().map(|b| json!(b)).collect(),
-        Dtype::U64 => raw.chunks_exact(8).map(|b| json!(u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))).collect(),
-        Dtype::U16 | Dtype::U32 | Dtype::I32 => decode_f64(dtype, raw).into_iter().map(|v| json!(v as i64)).collect(),
-        _ => decode_f64(dtype, raw).into_iter().map(|v| json!(v)).collect(),
+        Dtype::U64 => raw
+            .chunks_exact(8)
+            .map(|b| json!(u64::from_le_bytes(b.try_into().unwrap_or([0; 8]))))
+            .collect(),
+        Dtype::U16 | Dtype::U32 | Dtype::I32 => decode_f64(dtype, raw)
+            .into_iter()
+            .map(|v| json!(v as i64))
+            .collect(),
+        _ => decode_f64(dtype, raw)
+            .into_iter()
+            .map(|v| json!(v))
+            .collect(),
     }
 }

@@ -43,14 +43,35 @@ impl FileKind for Selection {
         if self.prompt.is_empty() {
             return Err(meta_err(path, "prompt", "a non-empty prompt text"));
         }
-        check_len(path, "scores", self.scores.len(), self.gaussian_ids.len(), "values, one per id")?;
+        check_len(
+            path,
+            "scores",
+            self.scores.len(),
+            self.gaussian_ids.len(),
+            "values, one per id",
+        )?;
         let mut prev: Option<u32> = None;
         for (i, id) in self.gaussian_ids.iter().enumerate() {
             if *id as usize >= self.num_gaussians {
-                return Err(out_of_range(path, "gaussian_ids", i, id, format!("a Gaussian id < {} (metadata num_gaussians)", self.num_gaussians)));
+                return Err(out_of_range(
+                    path,
+                    "gaussian_ids",
+                    i,
+                    id,
+                    format!(
+                        "a Gaussian id < {} (metadata num_gaussians)",
+                        self.num_gaussians
+                    ),
+                ));
             }
             if prev.is_some_and(|p| p >= *id) {
-                return Err(out_of_range(path, "gaussian_ids", i, id, "ids in strictly increasing order"));
+                return Err(out_of_range(
+                    path,
+                    "gaussian_ids",
+                    i,
+                    id,
+                    "ids in strictly increasing order",
+                ));
             }
             prev = Some(*id);
         }

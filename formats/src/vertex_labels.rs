@@ -33,13 +33,31 @@ impl FileKind for VertexLabels {
 
     fn validate(&self, path: &str) -> Result<()> {
         if let Some(i) = self.labels.iter().position(|l| *l < -1) {
-            return Err(out_of_range(path, "labels", i, self.labels[i], "a class id >= 0 or -1 for no label"));
+            return Err(out_of_range(
+                path,
+                "labels",
+                i,
+                self.labels[i],
+                "a class id >= 0 or -1 for no label",
+            ));
         }
         if let Some(c) = &self.confidence {
-            check_len(path, "confidence", c.len(), self.labels.len(), "values, one per vertex")?;
+            check_len(
+                path,
+                "confidence",
+                c.len(),
+                self.labels.len(),
+                "values, one per vertex",
+            )?;
             check_finite(path, "confidence", c)?;
             if let Some(i) = c.iter().position(|v| !(0.0..=1.0).contains(v)) {
-                return Err(out_of_range(path, "confidence", i, c[i], "a value in [0, 1]"));
+                return Err(out_of_range(
+                    path,
+                    "confidence",
+                    i,
+                    c[i],
+                    "a value in [0, 1]",
+                ));
             }
         }
         Ok(())
@@ -59,7 +77,10 @@ impl FileKind for VertexLabels {
     fn counts(&self) -> BTreeMap<&'static str, u64> {
         BTreeMap::from([
             ("vertices", self.labels.len() as u64),
-            ("labelled", self.labels.iter().filter(|l| **l >= 0).count() as u64),
+            (
+                "labelled",
+                self.labels.iter().filter(|l| **l >= 0).count() as u64,
+            ),
         ])
     }
 }

@@ -62,16 +62,33 @@ impl FileKind for ViewMaps {
     fn validate(&self, path: &str) -> Result<()> {
         let cells = self.view_names.len() * self.height * self.width;
         if let Some(i) = self.view_names.iter().position(String::is_empty) {
-            return Err(meta_err(path, "view_names", &format!("non-empty names (entry {i} is empty)")));
+            return Err(meta_err(
+                path,
+                "view_names",
+                &format!("non-empty names (entry {i} is empty)"),
+            ));
         }
         check_len(path, "depth", self.depth.len(), cells, "values (V x H x W)")?;
         check_finite(path, "depth", &self.depth)?;
         if let Some(i) = self.depth.iter().position(|d| *d < 0.0) {
-            return Err(out_of_range(path, "depth", i, self.depth[i], "a depth >= 0"));
+            return Err(out_of_range(
+                path,
+                "depth",
+                i,
+                self.depth[i],
+                "a depth >= 0",
+            ));
         }
         if let Some(ids) = &self.object_ids {
             check_len(path, "object_ids", ids.len(), cells, "values (V x H x W)")?;
-            check_ids(path, "object_ids", ids, self.num_objects as u64, Some(u64::from(NO_OBJECT)), "the objects")?;
+            check_ids(
+                path,
+                "object_ids",
+                ids,
+                self.num_objects as u64,
+                Some(u64::from(NO_OBJECT)),
+                "the objects",
+            )?;
         }
         Ok(())
     }

@@ -63,7 +63,13 @@ impl<'a> FileWriter<'a> {
     }
 
     /// Adds a tensor of any dtype from raw little-endian bytes (used to build test files).
-    pub fn raw_tensor(&mut self, name: &str, dtype: Dtype, shape: &[usize], bytes: Vec<u8>) -> &mut Self {
+    pub fn raw_tensor(
+        &mut self,
+        name: &str,
+        dtype: Dtype,
+        shape: &[usize],
+        bytes: Vec<u8>,
+    ) -> &mut Self {
         self.tensors.insert(
             name.to_string(),
             Pending {
@@ -106,20 +112,33 @@ impl<'a> FileWriter<'a> {
     /// tensor aligned to its dtype when the data section is 8-aligned.
     fn ordered(&self) -> Vec<(&String, &Pending<'a>)> {
         let mut order: Vec<_> = self.tensors.iter().collect();
-        order.sort_by(|a, b| b.1.dtype.size().cmp(&a.1.dtype.size()).then_with(|| a.0.cmp(b.0)));
+        order.sort_by(|a, b| {
+            b.1.dtype
+                .size()
+                .cmp(&a.1.dtype.size())
+                .then_with(|| a.0.cmp(b.0))
+        });
         order
     }
 
     fn header(&self) -> std::io::Result<Vec<u8>> {
         let mut header = serde_json::Map::new();
-        header.insert("__metadata__".to_string(), serde_json::to_value(self.metadata_with_kind())?);
+        header.insert(
+            "__metadata__".to_string(),
+            serde_json::to_value(self.metadata_with_kind())?,
+        );
         let mut offset = 0usize;
         for (name, t) in self.ordered() {
             let numel: usize = t.shape.iter().product();
             if numel * t.dtype.size() != t.bytes.len() {
                 return Err(std::io::Error::new(
                     std::io::ErrorKind::InvalidInput,
-                    format!("tensor `{name}`: shape {:?} of {} does not match {} bytes", t.shape, t.dtype, t.bytes.len()),
+                    format!(
+                        "tensor `{name}`: shape {:?} of {} does not match {} bytes",
+                        t.shape,
+                        t.dtype,
+                        t.bytes.len()
+                    ),
                 ));
             }
             header.insert(
@@ -158,16 +177,26 @@ impl<'a> FileWriter<'a> {
             Some(p) if !p.as_os_str().is_empty() => p,
             _ => Path::new("."),
         };
-        let tmp = tempfile::Builder::new()
-            .prefix(".profuse-tmp-")
+        let mut builder = tempfile::Builder::new();
+        builder.prefix(".profuse-tmp-");
+        // Like File::create: 0666 minus the umask, not tempfile's private 0600.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            builder.permissions(std::fs::Permissions::from_mode(0o666));
+        }
+        let tmp = builder
             .tempfile_in(dir)
             .map_err(|e| io("cannot create a temporary file next to it", e))?;
         {
             let mut w = std::io::BufWriter::with_capacity(1 << 20, tmp.as_file());
             self.serialise(&mut w).map_err(|e| io("cannot write", e))?;
         }
-        tmp.as_file().sync_all().map_err(|e| io("cannot flush", e))?;
-        tmp.persist(path).map_err(|e| io("cannot rename into place", e.error))?;
+        tmp.as_file()
+            .sync_all()
+            .map_err(|e| io("cannot flush", e))?;
+        tmp.persist(path)
+            .map_err(|e| io("cannot rename into place", e.error))?;
         Ok(())
     }
 }
