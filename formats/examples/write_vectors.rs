@@ -17,7 +17,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         std::fs::write(root.join(&v.name), &v.bytes)?;
     }
     let expected = profuse_formats::samples::expected_json(&vectors);
-    std::fs::write(root.join("expected.json"), serde_json::to_string_pretty(&expected)? + "\n")?;
+    std::fs::write(
+        root.join("expected.json"),
+        serde_json::to_string_pretty(&expected)? + "\n",
+    )?;
     eprintln!("wrote {} vectors to {}", vectors.len(), root.display());
     Ok(())
 }

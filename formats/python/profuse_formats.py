@@ -68,6 +68,7 @@ __all__ = [
     "VertexLabels",
     "Mesh",
     "ViewMaps",
+    "TopK",
     "read_cameras",
     "read_gaussians",
     "read_masks",
@@ -81,6 +82,7 @@ __all__ = [
     "read_vertex_labels",
     "read_mesh",
     "read_view_maps",
+    "read_topk",
     "read_any",
     "inspect",
     "report_json",
@@ -88,6 +90,7 @@ __all__ = [
     "DTYPE_SIZES",
     "NO_PROPOSAL",
     "NO_OBJECT",
+    "NO_GAUSSIAN",
 ]
 
 # --------------------------------------------------------------------------------------
@@ -128,6 +131,7 @@ KINDS = (
     "vertex_labels",
     "mesh",
     "view_maps",
+    "topk",
 )
 
 _U32_MAX = 2**32 - 1
@@ -172,6 +176,10 @@ _NUMPY_DTYPES = {
 _LABEL_NONE = {"U16": 2**16 - 1, "U32": _U32_MAX}
 NO_PROPOSAL = _U32_MAX
 NO_OBJECT = _U32_MAX
+#: Padding id of an unused top-K slot.
+NO_GAUSSIAN = _U32_MAX
+#: Slack on "sum of top-K weights + transmittance <= 1".
+WEIGHT_SUM_TOLERANCE = 1e-4
 #: SH coefficients per channel beyond DC for degrees 0..=3.
 SH_REST_COEFFS = (0, 3, 8, 15)
 #: Centroids per PQ sub-quantiser (8-bit codes).
@@ -1903,6 +1911,94 @@ def _view_maps(c: Container) -> ViewMaps:
     )
 
 
+
+@dataclasses.dataclass
+class TopK(_Record):
+    """``profuse.topk``: the per-pixel top-K contributors of one rendered view."""
+
+    KIND: ClassVar[str] = "topk"
+    TENSORS: ClassVar[tuple[str, ...]] = ("ids", "weights", "transmittance")
+
+    path: str
+    metadata: dict[str, str]
+    #: Metadata ``num_gaussians``.
+    num_gaussians: int
+    #: U32 [H, W, K]: ids by decreasing weight, 4294967295 = padding.
+    ids: np.ndarray
+    #: F32 [H, W, K]: weights omega = T * alpha, 0 exactly on padding.
+    weights: np.ndarray
+    #: F32 [H, W]: final transmittance.
+    transmittance: np.ndarray
+    height: int
+    width: int
+    k: int
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "height": self.height,
+            "width": self.width,
+            "k": self.k,
+            "hits": int(np.count_nonzero(self.ids != NO_GAUSSIAN)),
+        }
+
+
+def _topk(c: Container) -> TopK:
+    r = _Reader(c)
+    num_gaussians = r.meta_usize("num_gaussians", "a non-negative integer")
+    r.req("ids", "U32", "H,W,K")
+    r.req("weights", "F32", "H,W,K")
+    r.req("transmittance", "F32", "H,W")
+    height, width, k = r.dim("H"), r.dim("W"), r.dim("K")
+    a = r.load()
+    path = c.path
+    if k == 0:
+        raise _shape_error(path, "ids", [height, width, 0], "[H, W, K] with K >= 1")
+    ids, weights, trans = a["ids"], a["weights"], a["transmittance"]
+    _check_ids(path, "ids", ids, num_gaussians, NO_GAUSSIAN, "the Gaussians")
+    _check_finite(path, "weights", weights)
+    flat_w = weights.reshape(-1)
+    i = _first((flat_w < 0.0) | (flat_w > 1.0))
+    if i is not None:
+        raise _out_of_range(path, "weights", i, _display_float(flat_w[i]), "a weight in [0, 1]")
+    w2 = weights.reshape(-1, k)
+    pad = ids.reshape(-1, k) == NO_GAUSSIAN
+    # The first defect in (pixel, slot) order: padding/weight mismatch, then ordering.
+    bad_pad = pad != (w2 == 0.0)
+    bad_order = np.zeros_like(bad_pad)
+    bad_order[:, 1:] = w2[:, 1:] > w2[:, :-1]
+    i = _first((bad_pad | bad_order).reshape(-1))
+    if i is not None:
+        p, s = divmod(i, k)
+        w = _display_float(w2[p, s])
+        if bad_pad[p, s]:
+            detail = f"pixel {p} slot {s}: id {int(ids.reshape(-1, k)[p, s])} with weight {w} (padding must have weight 0, hits weight > 0)"
+        else:
+            detail = f"pixel {p} slot {s}: weight {w} exceeds the previous slot's {_display_float(w2[p, s - 1])}"
+        raise _invalid(path, "weights", detail)
+    _check_finite(path, "transmittance", trans)
+    flat_t = trans.reshape(-1)
+    i = _first((flat_t < 0.0) | (flat_t > 1.0))
+    if i is not None:
+        raise _out_of_range(path, "transmittance", i, _display_float(flat_t[i]), "a transmittance in [0, 1]")
+    totals = np.zeros(w2.shape[0], np.float64)
+    for slot in range(k):  # index order, as the Rust reader sums
+        totals += w2[:, slot].astype(np.float64)
+    totals += flat_t.astype(np.float64)
+    i = _first(totals > 1.0 + WEIGHT_SUM_TOLERANCE)
+    if i is not None:
+        raise _invalid(path, "weights", f"pixel {i}: weights plus transmittance sum to {totals[i]!r}, more than 1")
+    return TopK(
+        path=path,
+        metadata=dict(c.metadata),
+        num_gaussians=num_gaussians,
+        ids=ids,
+        weights=weights,
+        transmittance=trans,
+        height=height,
+        width=width,
+        k=k,
+    )
+
 _READERS: dict[str, Callable[[Container], _Record]] = {
     "cameras": _cameras,
     "gaussians": _gaussians,
@@ -1917,6 +2013,7 @@ _READERS: dict[str, Callable[[Container], _Record]] = {
     "vertex_labels": _vertex_labels,
     "mesh": _mesh,
     "view_maps": _view_maps,
+    "topk": _topk,
 }
 
 
@@ -1989,6 +2086,11 @@ def read_mesh(path: Any) -> Mesh:
 def read_view_maps(path: Any) -> ViewMaps:
     """Reads and fully validates a ``profuse.view_maps`` file."""
     return _read_kind(path, "view_maps")
+
+
+def read_topk(path: Any) -> TopK:
+    """Reads and fully validates a ``profuse.topk`` file."""
+    return _read_kind(path, "topk")
 
 
 def _read_container(c: Container) -> _Record:

@@ -217,6 +217,15 @@ def sample(kind: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
                 2, 2, 3
             ),
         }, {"view_names": json.dumps(["a.png", "b.png"]), "num_objects": "3"}
+    if kind == "topk":
+        n = U32_NONE
+        return {
+            "ids": np.array([0, 1, 2, 3, n, n, n, n, n, 6, 5, 4, 2, n, n, 1, 0, n], u32).reshape(2, 3, 3),
+            "weights": np.array(
+                [0.5, 0.25, 0.125, 0.9, 0, 0, 0, 0, 0, 0.4, 0.3, 0.2, 0.75, 0, 0, 0.5, 0.5, 0], f32
+            ).reshape(2, 3, 3),
+            "transmittance": np.array([0.125, 0.1, 1.0, 0.1, 0.25, 0.0], f32).reshape(2, 3),
+        }, {"num_gaussians": "7"}
     raise KeyError(kind)
 
 
@@ -236,6 +245,7 @@ GENERIC = {
     "vertex_labels": ("labels", "confidence", ("labels", "confidence")),
     "mesh": ("vertices", "vertices", ("vertices", "colors")),
     "view_maps": ("depth", "depth", ("depth", "object_ids")),
+    "topk": ("weights", "weights", ("ids", "weights")),
 }
 
 # Per kind: a mutation putting an id or value out of range, and the field it names.
@@ -253,6 +263,7 @@ OUT_OF_RANGE: dict[str, tuple[Callable[[dict], None], str]] = {
     "vertex_labels": (lambda t: t["labels"].__setitem__(0, -2), "labels"),
     "mesh": (lambda t: t["faces"].__setitem__((1, 2), 4), "faces"),
     "view_maps": (lambda t: t["object_ids"].__setitem__((0, 0, 0), 3), "object_ids"),
+    "topk": (lambda t: t["ids"].__setitem__((0, 0, 1), 7), "ids"),
 }
 
 
@@ -1023,6 +1034,22 @@ class KindRuleTests(TempDirTest):
         self.check("view_maps", lambda t, m: m.__setitem__("num_objects", "2"), "out_of_range", "object_ids")
         rec = self.ok("view_maps", lambda t, m: t.pop("object_ids"))
         self.assertEqual(rec.counts(), {"views": 2, "height": 2, "width": 3, "objects": 3})
+
+    def test_topk(self) -> None:
+        self.check("topk", lambda t, m: m.pop("num_gaussians"), "metadata", "num_gaussians")
+        self.check("topk", lambda t, m: t["weights"].__setitem__((0, 0, 0), 1.5), "out_of_range", "weights")
+        self.check("topk", lambda t, m: t["weights"].__setitem__((0, 1, 1), 0.05), "invalid", "weights")
+        self.check("topk", lambda t, m: t["weights"].__setitem__((0, 0, 1), 0.6), "invalid", "weights")
+        self.check("topk", lambda t, m: t["transmittance"].__setitem__((0, 0), 0.5), "invalid", "weights")
+        self.check("topk", lambda t, m: t["transmittance"].__setitem__((0, 2), -0.5), "out_of_range", "transmittance")
+        self.check(
+            "topk",
+            lambda t, m: [t.__setitem__(k, t[k][:, :, :0]) for k in ("ids", "weights")],
+            "shape",
+            "ids",
+        )
+        rec = self.ok("topk", lambda t, m: None)
+        self.assertEqual(rec.counts(), {"height": 2, "width": 3, "k": 3, "hits": 10})
 
 
 class CliTests(TempDirTest):

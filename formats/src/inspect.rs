@@ -11,7 +11,7 @@ use crate::error::{FormatError, Result};
 use crate::kind::{FileKind, Kind};
 use crate::{
     Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
-    SparseMatches, VertexLabels, ViewMaps,
+    SparseMatches, TopK, VertexLabels, ViewMaps,
 };
 
 /// The outcome of inspecting one file.
@@ -101,5 +101,6 @@ pub fn validate_any(c: &Container) -> Result<BTreeMap<&'static str, u64>> {
         Kind::VertexLabels => counts::<VertexLabels>(c),
         Kind::Mesh => counts::<Mesh>(c),
         Kind::ViewMaps => counts::<ViewMaps>(c),
+        Kind::TopK => counts::<TopK>(c),
     }
 }

@@ -26,11 +26,12 @@ pub enum Kind {
     VertexLabels,
     Mesh,
     ViewMaps,
+    TopK,
 }
 
 impl Kind {
     /// All kinds, in SPEC.md order.
-    pub const ALL: [Kind; 13] = [
+    pub const ALL: [Kind; 14] = [
         Kind::Cameras,
         Kind::Gaussians,
         Kind::Masks,
@@ -44,6 +45,7 @@ impl Kind {
         Kind::VertexLabels,
         Kind::Mesh,
         Kind::ViewMaps,
+        Kind::TopK,
     ];
 
     /// Short name (`cameras`, `sparse_matches`, ...).
@@ -62,6 +64,7 @@ impl Kind {
             Kind::VertexLabels => "vertex_labels",
             Kind::Mesh => "mesh",
             Kind::ViewMaps => "view_maps",
+            Kind::TopK => "topk",
         }
     }
 
@@ -81,6 +84,7 @@ impl Kind {
             Kind::VertexLabels => "profuse.vertex_labels",
             Kind::Mesh => "profuse.mesh",
             Kind::ViewMaps => "profuse.view_maps",
+            Kind::TopK => "profuse.topk",
         }
     }
 

@@ -14,7 +14,7 @@ use crate::kind::{FileKind, Kind};
 use crate::writer::FileWriter;
 use crate::{
     Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
-    SparseMatches, VertexLabels, ViewMaps, WarpCoords,
+    SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords,
 };
 
 /// Two views looking at the origin from +x and −z, 8x6 pixels.
@@ -316,6 +316,25 @@ pub fn view_maps() -> ViewMaps {
         depth: vec![1.0, 1.5, 2.0, 0.0, 2.5, 3.0, 4.0, 4.0, 4.25, 0.5, 0.75, 0.0].into(),
         object_ids: Some(vec![0, 0, 1, u32::MAX, 2, 2, 1, 1, 1, 0, 0, u32::MAX].into()),
         extra: BTreeMap::new(),
+    }
+}
+
+/// A 3x2 view with K = 3 slots per pixel.
+pub fn topk() -> TopK {
+    let n = u32::MAX;
+    TopK {
+        num_gaussians: 7,
+        width: 3,
+        height: 2,
+        k: 3,
+        ids: vec![0, 1, 2, 3, n, n, n, n, n, 6, 5, 4, 2, n, n, 1, 0, n].into(),
+        weights: vec![
+            0.5, 0.25, 0.125, 0.9, 0.0, 0.0, 0.0, 0.0, 0.0, 0.4, 0.3, 0.2, 0.75, 0.0, 0.0, 0.5,
+            0.5, 0.0,
+        ]
+        .into(),
+        transmittance: vec![0.125, 0.1, 1.0, 0.1, 0.25, 0.0].into(),
+        extra: BTreeMap::from([("view".to_string(), "0".to_string())]),
     }
 }
 
@@ -1351,6 +1370,81 @@ fn cases() -> Vec<Case> {
     ));
     cases.push(Case {
         stem: "view_maps",
+        valid: v,
+        invalid: inv,
+    });
+
+    let tk = topk();
+    let v = bytes_of(&unvalidated(&tk));
+    let mut inv = container_defects(&v, "weights");
+    inv.push((
+        "missing_tensor",
+        without_tensor(&v, "transmittance"),
+        "missing_tensor",
+        Some("transmittance"),
+    ));
+    inv.push((
+        "dtype",
+        retype(&v, "weights", Dtype::F64),
+        "dtype",
+        Some("weights"),
+    ));
+    inv.push((
+        "shape",
+        reshape(&v, "weights", &[2, 3, 2]),
+        "shape",
+        Some("weights"),
+    ));
+    inv.push((
+        "metadata",
+        with_meta(&tk, "num_gaussians", None),
+        "metadata",
+        Some("num_gaussians"),
+    ));
+    inv.push((
+        "out_of_range",
+        mutated(&tk, |t| set(&mut t.ids, 1, 7)),
+        "out_of_range",
+        Some("ids"),
+    ));
+    inv.push((
+        "weight_range",
+        mutated(&tk, |t| set(&mut t.weights, 0, 1.5)),
+        "out_of_range",
+        Some("weights"),
+    ));
+    inv.push((
+        "non_finite",
+        mutated(&tk, |t| set(&mut t.weights, 4, f32::NAN)),
+        "non_finite",
+        Some("weights"),
+    ));
+    inv.push((
+        "padding",
+        mutated(&tk, |t| set(&mut t.weights, 4, 0.05)),
+        "invalid",
+        Some("weights"),
+    ));
+    inv.push((
+        "unsorted",
+        mutated(&tk, |t| set(&mut t.weights, 1, 0.6)),
+        "invalid",
+        Some("weights"),
+    ));
+    inv.push((
+        "sum",
+        mutated(&tk, |t| set(&mut t.transmittance, 0, 0.5)),
+        "invalid",
+        Some("weights"),
+    ));
+    inv.push((
+        "transmittance",
+        mutated(&tk, |t| set(&mut t.transmittance, 2, -0.5)),
+        "out_of_range",
+        Some("transmittance"),
+    ));
+    cases.push(Case {
+        stem: "topk",
         valid: v,
         invalid: inv,
     });

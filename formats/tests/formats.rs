@@ -6,8 +6,9 @@ use std::path::{Path, PathBuf};
 
 use profuse_formats::samples::{self, Vector};
 use profuse_formats::{
-    inspect, Cameras, Container, FileKind, Floats, Features, Gaussians, Labels, Masks, Matches,
-    Mesh, Pq, Prompts, Proposals, Selection, SparseMatches, VertexLabels, ViewMaps, WarpCoords, f16,
+    f16, inspect, Cameras, Container, Features, FileKind, Floats, Gaussians, Labels, Masks,
+    Matches, Mesh, Pq, Prompts, Proposals, Selection, SparseMatches, TopK, VertexLabels, ViewMaps,
+    WarpCoords,
 };
 use proptest::prelude::*;
 
@@ -20,9 +21,17 @@ fn committed_vectors_equal_what_the_code_writes() {
     let vectors = samples::vectors();
     let dir = vectors_dir();
     for v in &vectors {
-        let on_disk = std::fs::read(dir.join(&v.name))
-            .unwrap_or_else(|e| panic!("{}: {e} (run `cargo run -p profuse-formats --example write_vectors`)", v.name));
-        assert!(on_disk == v.bytes, "{} differs from what the code writes; regenerate the vectors", v.name);
+        let on_disk = std::fs::read(dir.join(&v.name)).unwrap_or_else(|e| {
+            panic!(
+                "{}: {e} (run `cargo run -p profuse-formats --example write_vectors`)",
+                v.name
+            )
+        });
+        assert!(
+            on_disk == v.bytes,
+            "{} differs from what the code writes; regenerate the vectors",
+            v.name
+        );
     }
     for sub in ["valid", "invalid"] {
         let count = std::fs::read_dir(dir.join(sub)).unwrap().count();
@@ -31,7 +40,11 @@ fn committed_vectors_equal_what_the_code_writes() {
     }
     let expected: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("expected.json")).unwrap()).unwrap();
-    assert_eq!(expected, samples::expected_json(&vectors), "expected.json is stale");
+    assert_eq!(
+        expected,
+        samples::expected_json(&vectors),
+        "expected.json is stale"
+    );
 }
 
 #[test]
@@ -39,14 +52,22 @@ fn every_valid_vector_reads_and_every_invalid_one_fails_with_its_code_and_field(
     let vectors = samples::vectors();
     let dir = vectors_dir();
     let mut invalid_seen = 0;
-    for Vector { name, expect_error, .. } in &vectors {
+    for Vector {
+        name, expect_error, ..
+    } in &vectors
+    {
         let report = inspect(dir.join(name));
         match expect_error {
             None => assert!(report.error.is_none(), "{name}: {:?}", report.error),
             Some((code, field)) => {
-                let err = report.error.unwrap_or_else(|| panic!("{name} was accepted"));
+                let err = report
+                    .error
+                    .unwrap_or_else(|| panic!("{name} was accepted"));
                 assert_eq!((err.code(), err.field()), (*code, *field), "{name}: {err}");
-                assert!(err.to_string().contains(name.as_str()), "{name}: error does not name the file: {err}");
+                assert!(
+                    err.to_string().contains(name.as_str()),
+                    "{name}: error does not name the file: {err}"
+                );
                 invalid_seen += 1;
             }
         }
@@ -63,12 +84,19 @@ fn each_typed_reader_rejects_its_defects() {
         K::read(&valid).unwrap_or_else(|e| panic!("{e}"));
         let mut n = 0;
         for v in samples::vectors() {
-            let Some((code, field)) = v.expect_error else { continue };
+            let Some((code, field)) = v.expect_error else {
+                continue;
+            };
             if !v.name.starts_with(&format!("invalid/{stem}__")) {
                 continue;
             }
             let err = K::read(dir.join(&v.name)).expect_err(&v.name);
-            assert_eq!((err.code(), err.field()), (code, field), "{}: {err}", v.name);
+            assert_eq!(
+                (err.code(), err.field()),
+                (code, field),
+                "{}: {err}",
+                v.name
+            );
             n += 1;
         }
         assert!(n >= 15, "{stem}: only {n} defect classes");
@@ -90,6 +118,7 @@ fn each_typed_reader_rejects_its_defects() {
     check::<VertexLabels>("vertex_labels");
     check::<Mesh>("mesh");
     check::<ViewMaps>("view_maps");
+    check::<TopK>("topk");
 }
 
 #[test]
@@ -116,7 +145,10 @@ fn misaligned_tensors_are_copied_not_rejected() {
     // Header padded to a length that leaves the data section 4 bytes off 8-alignment.
     let bytes = samples::cameras().to_bytes().unwrap();
     let shifted = samples::rewrite_header(&bytes, |h| {
-        h.insert("__pad__".into(), serde_json::json!({"dtype": "U8", "shape": [0], "data_offsets": [0, 0]}));
+        h.insert(
+            "__pad__".into(),
+            serde_json::json!({"dtype": "U8", "shape": [0], "data_offsets": [0, 0]}),
+        );
     });
     let n = u64::from_le_bytes(shifted[..8].try_into().unwrap()) as usize;
     let mut text = shifted[8..8 + n].to_vec();
@@ -141,13 +173,18 @@ fn failed_write_leaves_the_existing_file_and_no_temporaries() {
     let err = bad.write(&p).unwrap_err();
     assert_eq!(err.code(), "metadata");
     assert_eq!(std::fs::read(&p).unwrap(), before);
-    let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
     assert_eq!(names.len(), 1, "{names:?}");
 }
 
 #[test]
 fn write_to_a_missing_directory_is_an_io_error() {
-    let err = samples::mesh().write("/nonexistent-dir/x/mesh.safetensors").unwrap_err();
+    let err = samples::mesh()
+        .write("/nonexistent-dir/x/mesh.safetensors")
+        .unwrap_err();
     assert_eq!(err.code(), "io");
 }
 
@@ -377,14 +414,36 @@ proptest! {
         };
         round_trip(&m);
     }
+
+    #[test]
+    fn topk_round_trip(h in 0usize..4, w in 0usize..4, k in 1usize..5, hits in proptest::collection::vec(0usize..5, 16)) {
+        let pixels = h * w;
+        let mut ids = Vec::new();
+        let mut weights = Vec::new();
+        let mut t = Vec::new();
+        for p in 0..pixels {
+            let n = hits[p % 16].min(k);
+            let mut remaining = 1.0f32;
+            for s in 0..k {
+                if s < n { ids.push((p * 3 + s) as u32 % 10); weights.push(remaining * 0.5); remaining *= 0.5; } else { ids.push(u32::MAX); weights.push(0.0); }
+            }
+            t.push(remaining);
+        }
+        let x = TopK { num_gaussians: 10, width: w, height: h, k, ids: ids.into(), weights: weights.into(), transmittance: t.into(), extra: Default::default() };
+        round_trip(&x);
+    }
 }
 
 /// The reference safetensors implementation accepts every valid file we write, and
 /// sees the same tensors and metadata.
 #[test]
 fn reference_safetensors_crate_reads_our_files() {
-    for v in samples::vectors().iter().filter(|v| v.expect_error.is_none()) {
-        let st = safetensors::SafeTensors::deserialize(&v.bytes).unwrap_or_else(|e| panic!("{}: {e}", v.name));
+    for v in samples::vectors()
+        .iter()
+        .filter(|v| v.expect_error.is_none())
+    {
+        let st = safetensors::SafeTensors::deserialize(&v.bytes)
+            .unwrap_or_else(|e| panic!("{}: {e}", v.name));
         let ours = Container::from_vec(v.name.clone(), v.bytes.clone()).unwrap();
         assert_eq!(st.len(), ours.tensors().len(), "{}", v.name);
         for (name, info) in ours.tensors() {
@@ -393,7 +452,12 @@ fn reference_safetensors_crate_reads_our_files() {
             assert_eq!(t.data(), ours.raw(name).unwrap(), "{} {name}", v.name);
         }
         let (_, meta) = safetensors::SafeTensors::read_metadata(&v.bytes).unwrap();
-        let meta: std::collections::BTreeMap<String, String> = meta.metadata().clone().unwrap_or_default().into_iter().collect();
+        let meta: std::collections::BTreeMap<String, String> = meta
+            .metadata()
+            .clone()
+            .unwrap_or_default()
+            .into_iter()
+            .collect();
         assert_eq!(&meta, ours.metadata(), "{}", v.name);
     }
 }
