@@ -1,0 +1,638 @@
+//! Synthetic ProFuse scenes with exact ground truth.
+//!
+//! `synth` builds a closed room (floor, ceiling, four walls) with furniture of known
+//! NYU40 classes standing on the floor, places pinhole cameras on an orbit inside it, and
+//! writes everything the ProFuse pipeline consumes — cameras, RGB images, "SAM-like"
+//! masks with "CLIP-like" features, dense "RoMa-like" warps, text prompts — together with
+//! ground truth to score every stage against: per-view depth and object-id maps, a
+//! labelled triangle mesh, optional surface Gaussians, per-mask object provenance and
+//! LERF-style polygon labels. The directory layout is SPEC.md §6 plus `gt/`.
+//!
+//! # Why ray casting with parry3d
+//!
+//! Every object is one [parry3d](https://parry.rs) shape with an isometry: cuboids
+//! (cabinet, bed, bookshelf, the room's slabs), a ball (lamp), an upright cylinder
+//! (table), a lying capsule (sofa) and a closed L-shaped `TriMesh` (chair). Each pixel is
+//! the nearest hit of the ray through its centre, so depth, object id and normal are
+//! exact rather than approximations from a rasterised mesh, and the same shapes answer
+//! later questions exactly: [`Scene::raycast`] re-casts any ray (the warps are computed
+//! by casting, not from depth maps), and [`Scene::distance_to_surface`] (parry's point
+//! projections) measures how far a reconstructed point lies from the true surface. The
+//! scene is rebuilt bit-identically from `gt/scene.json` with [`Scene::from_json`].
+//! Per-object bounding spheres (and a local box for the chair mesh) skip shapes a ray
+//! cannot hit; rows are rendered in parallel.
+//!
+//! parry3d's cuboid and triangle-mesh ray casts are closed-form; its ball cast is
+//! closed-form in f32, and its capsule and cylinder casts run GJK, which stops about a
+//! millimetre from the surface. Balls, capsules and cylinders are therefore intersected
+//! with closed-form f64 quadric formulas in the parry shape's own frame (same
+//! f32-rounded dimensions), so every hit is within ~1e-6 m of the surface (tested:
+//! back-projected depths are within 1e-4 of parry's distance).
+//!
+//! # The mask fault model
+//!
+//! Masks start as one region per visible object (walls, floor and ceiling included, as
+//! SAM segments them too) at image resolution, then a [`FaultModel`] degrades them:
+//! small regions (< `min_area_px`) are dropped with `p_miss_small`; a region merges with
+//! a random neighbouring region with `p_merge`; a mask is split in two by a random line
+//! through its centroid with `p_split`; pixels within `jitter_px` of a boundary take a
+//! neighbouring label with `p_jitter`; boundary pixels lose their mask with
+//! `p_unassigned`. Features: every class name has a seeded random unit prototype; a mask's
+//! feature is `normalize(mix + feature_noise · g)`, `g ~ N(0, I/D)`, where `mix` is the
+//! area-weighted mean of the prototypes of the object regions that formed it (one class
+//! unless merged); with `p_wrong_class` it is first pulled toward another class,
+//! `(1 − β)·mix + β·p_other`, `β` uniform in `wrong_class_beta`. Prompts are
+//! `normalize(p_c + text_noise · g)`: near, not at, their class. `gt/mask_objects.json`
+//! records each mask's dominant object and purity; `gt/scene.json` the per-view counts of
+//! every fault.
+//!
+//! # Determinism
+//!
+//! All randomness comes from SplitMix64 streams whose state is a hash of a *key*
+//! (seed, purpose, indices) — see `rng.rs`. The layout and cameras use sequential streams;
+//! every per-view, per-object, per-pixel, per-cell and per-sample decision has its own key
+//! ((seed, view, object), (seed, view, pixel), (seed, i, j, cell), (seed, sample)), and
+//! parallel loops only ever write disjoint outputs, so the files are byte-identical for
+//! any rayon thread count. No third-party RNG is involved, so results do not change with
+//! dependency versions. Timings are reported on stdout only, never written to files.
+//!
+//! # Example
+//!
+//! ```
+//! use profuse_formats::{Cameras, FileKind};
+//! use synth::{generate, Config, Preset};
+//!
+//! let dir = tempfile::tempdir()?;
+//! let summary = generate(&Config::preset(Preset::Tiny, 7), dir.path())?;
+//! let cameras = Cameras::read(dir.path().join("cameras.safetensors"))?;
+//! assert_eq!(cameras.len(), summary.views);
+//! assert_eq!(cameras.image_size[0], [64, 48]);
+//! assert!(dir.path().join(&cameras.image_names[0]).exists());
+//!
+//! // The exact geometry comes back from gt/scene.json.
+//! let scene = synth::Scene::from_json(dir.path().join("gt/scene.json"))?;
+//! let cam = synth::Camera::from_cameras(&cameras, 0);
+//! let hit = scene.raycast(cam.center(), cam.ray(32.0, 24.0)).expect("a closed room");
+//! assert!(scene.distance_to_surface(hit.point) < 1e-4);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+mod camera;
+pub mod classes;
+mod config;
+mod error;
+mod gaussians;
+mod labels;
+mod masks;
+mod matches;
+mod mesh;
+mod output;
+mod rng;
+mod scene;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use profuse_formats::{
+    f16, Cameras, FileKind, Floats, Labels, Masks, Matches, Prompts, ViewMaps, WarpCoords,
+    NO_OBJECT,
+};
+use rayon::prelude::*;
+use serde::Serialize;
+
+pub use camera::{orbit, Camera};
+pub use config::{Config, FaultModel, MatchPrecision, Preset};
+pub use error::{Result, SynthError};
+pub use gaussians::SH_C0;
+pub use labels::MIN_COMPONENT_PX;
+pub use masks::{prototype, Prototypes, ViewProvenance};
+pub use matches::neighbour_pairs;
+pub use scene::{Hit, ObjectSpec, Scene, ShapeSpec, Texture, SLAB};
+
+/// What [`generate`] did; the `synth` tool prints it as JSON.
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    /// The output directory.
+    pub out: PathBuf,
+    /// The preset name.
+    pub preset: String,
+    /// The seed.
+    pub seed: u64,
+    /// Number of views.
+    pub views: usize,
+    /// Image width and height.
+    pub resolution: [u32; 2],
+    /// Objects placed on the floor (may be fewer than requested if the floor is full).
+    pub objects: usize,
+    /// Objects requested.
+    pub objects_requested: usize,
+    /// All objects including the six room surfaces (= object ids).
+    pub scene_objects: usize,
+    /// Masks written (0 with `write_masks` off).
+    pub masks: usize,
+    /// Ordered view pairs with warps (0 with `write_matches` off).
+    pub pairs: usize,
+    /// Match grid width and height.
+    pub match_grid: [usize; 2],
+    /// Prompts written.
+    pub prompts: usize,
+    /// Ground-truth Gaussians written.
+    pub gaussians: usize,
+    /// Mesh vertices and faces.
+    pub mesh: [usize; 2],
+    /// Evaluation frames with LERF-style labels.
+    pub eval_frames: Vec<usize>,
+    /// Wall-clock seconds per phase (scene, render, masks, matches, gaussians, mesh,
+    /// labels) and in total.
+    pub seconds: BTreeMap<String, f64>,
+}
+
+/// Generates a scene into `out` (created if needed). See [`generate_with_progress`].
+pub fn generate(config: &Config, out: &Path) -> Result<Summary> {
+    generate_with_progress(config, out, &|_| {})
+}
+
+/// The image path (relative to the scene directory) of view `v`.
+pub fn image_name(v: usize) -> String {
+    format!("images/frame_{v:05}.png")
+}
+
+/// Generates a scene into `out`, calling `progress` with a short message at each step.
+/// Files the generator owns are overwritten; outputs of an earlier run that this run
+/// does not produce (images beyond the view count, label frames, disabled files) are
+/// removed so the directory is consistent.
+pub fn generate_with_progress(
+    config: &Config,
+    out: &Path,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<Summary> {
+    config.validate()?;
+    let total = Instant::now();
+    let mut seconds = BTreeMap::new();
+    let mut clock = Instant::now();
+    let mut lap = |name: &str, clock: &mut Instant| {
+        seconds.insert(name.to_string(), clock.elapsed().as_secs_f64());
+        *clock = Instant::now();
+    };
+    let gt = out.join("gt");
+    let label_dir = gt.join("label");
+    for d in [out, &out.join("images"), &gt, &label_dir] {
+        output::create_dir(d)?;
+    }
+    let generator = format!("synth {}", env!("CARGO_PKG_VERSION"));
+
+    // Scene and cameras.
+    progress("building the scene");
+    let scene = Scene::generate(config)?;
+    let cams = orbit(config);
+    let (w, h) = (config.width as usize, config.height as usize);
+    let names: Vec<String> = (0..config.views).map(image_name).collect();
+    let class_of: Vec<u32> = scene.objects.iter().map(|o| o.class_id).collect();
+    let placed = scene.objects.iter().filter(|o| !o.room).count();
+    lap("scene", &mut clock);
+
+    // Render: depth, object ids, colour.
+    let plane = w * h;
+    let mut depth = vec![0f32; config.views * plane];
+    let mut ids = vec![NO_OBJECT; config.views * plane];
+    let mut rgb = vec![0u8; plane * 3];
+    for (v, cam) in cams.iter().enumerate() {
+        progress(&format!("rendering view {}/{}", v + 1, config.views));
+        let (d, i) = (
+            &mut depth[v * plane..(v + 1) * plane],
+            &mut ids[v * plane..(v + 1) * plane],
+        );
+        render(&scene, cam, d, i, &mut rgb);
+        output::write_png(&out.join(&names[v]), config.width, config.height, &rgb)?;
+    }
+    remove_stale_frames(
+        &out.join("images"),
+        "png",
+        &(0..config.views).collect::<Vec<_>>(),
+    )?;
+    let cameras = Cameras {
+        image_names: names.clone(),
+        image_size: vec![[config.width, config.height]; config.views].into(),
+        intrinsics: cams.iter().map(|c| c.intrinsics).collect::<Vec<_>>().into(),
+        world_to_camera: cams
+            .iter()
+            .map(Camera::world_to_camera)
+            .collect::<Vec<_>>()
+            .into(),
+        distortion: None,
+        extra: meta(&generator),
+    };
+    cameras.write(out.join("cameras.safetensors"))?;
+    lap("render", &mut clock);
+
+    // Masks and prompts.
+    let classes_present: Vec<(u32, String)> = {
+        let mut c: Vec<(u32, String)> = scene
+            .objects
+            .iter()
+            .map(|o| (o.class_id, o.class_name.clone()))
+            .collect();
+        c.sort();
+        c.dedup();
+        c
+    };
+    let protos = Prototypes::new(config.seed, config.feature_dim, &classes_present);
+    let mut num_masks = 0;
+    let mut provenance = Vec::new();
+    if config.write_masks {
+        progress("deriving masks");
+        let per_view: Vec<masks::ViewMasks> = (0..config.views)
+            .into_par_iter()
+            .map(|v| {
+                masks::view_masks(
+                    config,
+                    v,
+                    &ids[v * plane..(v + 1) * plane],
+                    w,
+                    &class_of,
+                    &protos,
+                )
+            })
+            .collect();
+        let mut offsets = vec![0u32];
+        let mut labels = Vec::with_capacity(config.views * plane);
+        let mut features = Vec::new();
+        let mut entries = Vec::new();
+        for (v, vm) in per_view.into_iter().enumerate() {
+            labels.extend_from_slice(&vm.labels);
+            for (local, m) in vm.masks.iter().enumerate() {
+                features.extend(m.feature.iter().map(|x| f16::from_f32(*x)));
+                entries.push(MaskObject {
+                    id: entries.len(),
+                    view: v,
+                    local,
+                    object: (m.object != NO_OBJECT).then_some(m.object),
+                    object_name: scene.objects.get(m.object as usize).map(|o| o.name.clone()),
+                    class_id: scene.objects.get(m.object as usize).map(|o| o.class_id),
+                    purity: m.purity,
+                    pixels: m.pixels,
+                    objects: m.objects.clone(),
+                    split_half: m.half,
+                    feature_class: m.class_id,
+                    wrong_class: m.wrong_class,
+                });
+            }
+            offsets.push(entries.len() as u32);
+            provenance.push(vm.provenance);
+        }
+        num_masks = entries.len();
+        Masks {
+            view_names: names.clone(),
+            width: w,
+            height: h,
+            labels: Labels::U16(labels.into()),
+            mask_offsets: offsets.into(),
+            features: Floats::F16(features.into()),
+            dim: config.feature_dim,
+            extra: meta(&generator),
+        }
+        .write(out.join("masks.safetensors"))?;
+        output::write_json(
+            &gt.join("mask_objects.json"),
+            &MaskObjects {
+                num_masks,
+                masks: entries,
+            },
+            false,
+        )?;
+    } else {
+        output::remove_stale(&out.join("masks.safetensors"))?;
+        output::remove_stale(&gt.join("mask_objects.json"))?;
+    }
+    let prompt_rows = masks::prompts(config, &protos);
+    Prompts {
+        names: prompt_rows.iter().map(|p| p.0.clone()).collect(),
+        dim: config.feature_dim,
+        embeddings: prompt_rows
+            .iter()
+            .flat_map(|p| p.1.iter().copied())
+            .collect::<Vec<f32>>()
+            .into(),
+        class_ids: Some(prompt_rows.iter().map(|p| p.2).collect::<Vec<i32>>().into()),
+        extra: meta(&generator),
+    }
+    .write(out.join("prompts.safetensors"))?;
+    lap("masks", &mut clock);
+
+    // Matches.
+    let (gw, gh) = config.match_grid();
+    let mut num_pairs = 0;
+    if config.write_matches {
+        progress("computing warps");
+        let pairs = neighbour_pairs(&cams, config.neighbours);
+        num_pairs = pairs.len();
+        let warps = matches::compute(&scene, &cams, config, pairs);
+        let (warp, certainty) = match config.match_precision {
+            MatchPrecision::F32 => (
+                Floats::F32(warps.warp.into()),
+                Floats::F32(warps.certainty.into()),
+            ),
+            MatchPrecision::F16 => (
+                Floats::F16(
+                    warps
+                        .warp
+                        .iter()
+                        .map(|x| f16::from_f32(*x))
+                        .collect::<Vec<_>>()
+                        .into(),
+                ),
+                Floats::F16(
+                    warps
+                        .certainty
+                        .iter()
+                        .map(|x| f16::from_f32(*x))
+                        .collect::<Vec<_>>()
+                        .into(),
+                ),
+            ),
+        };
+        Matches {
+            num_views: config.views,
+            pairs: warps.pairs.into(),
+            height: warps.height,
+            width: warps.width,
+            warp,
+            certainty,
+            coords: WarpCoords::Normalized,
+            extra: meta(&generator),
+        }
+        .write(out.join("matches.safetensors"))?;
+    } else {
+        output::remove_stale(&out.join("matches.safetensors"))?;
+    }
+    lap("matches", &mut clock);
+
+    // Ground-truth Gaussians.
+    let mut num_gaussians = 0;
+    if config.gaussians > 0 {
+        progress("sampling ground-truth Gaussians");
+        let g = gaussians::sample(&scene, &cams, config.seed, config.gaussians);
+        num_gaussians = g.len();
+        g.write(gt.join("gaussians.safetensors"))?;
+    } else {
+        output::remove_stale(&gt.join("gaussians.safetensors"))?;
+    }
+    lap("gaussians", &mut clock);
+
+    // LERF-style labels.
+    progress("tracing label polygons");
+    let eval_frames: Vec<usize> = (0..config.views).step_by(config.eval_every).collect();
+    for &v in &eval_frames {
+        let file_name = format!("frame_{v:05}");
+        let lf = labels::frame_labels(
+            &scene,
+            &ids[v * plane..(v + 1) * plane],
+            w,
+            format!("{file_name}.png"),
+        );
+        output::write_json(&label_dir.join(format!("{file_name}.json")), &lf, false)?;
+    }
+    remove_stale_frames(&label_dir, "json", &eval_frames)?;
+    lap("labels", &mut clock);
+
+    // Mesh.
+    progress("triangulating the mesh");
+    let mesh = mesh::build(&scene, config.mesh_spacing);
+    let mesh_size = [
+        mesh.vertices.len(),
+        mesh.faces.as_ref().map_or(0, |f| f.len()),
+    ];
+    mesh.write(gt.join("mesh.safetensors"))?;
+    ViewMaps {
+        view_names: names.clone(),
+        num_objects: scene.len(),
+        width: w,
+        height: h,
+        depth: depth.into(),
+        object_ids: Some(ids.into()),
+        extra: meta(&generator),
+    }
+    .write(gt.join("views.safetensors"))?;
+    lap("mesh", &mut clock);
+
+    // The scene description.
+    let objects: Vec<ObjectJson<'_>> = scene
+        .objects
+        .iter()
+        .map(|o| ObjectJson {
+            spec: o,
+            shape_kind: o.shape.kind(),
+            rotation_wxyz: o.rotation_wxyz(),
+        })
+        .collect();
+    let classes = classes_present
+        .iter()
+        .map(|(id, name)| ClassJson {
+            id: *id,
+            name: name.clone(),
+            room: classes::ROOM.contains(id),
+            instances: scene.objects.iter().filter(|o| o.class_id == *id).count(),
+        })
+        .collect();
+    let file = SceneFile {
+        format: "synth.scene",
+        version: 1,
+        generator: generator.clone(),
+        preset: config.preset.clone(),
+        seed: config.seed,
+        label_space: "nyu40",
+        room: scene.room_json(),
+        classes,
+        objects_requested: config.objects,
+        objects_placed: placed,
+        objects,
+        cameras: CamerasJson {
+            views: config.views,
+            width: config.width,
+            height: config.height,
+            hfov_deg: config.hfov_deg,
+            image_names: names,
+        },
+        eval_frames: eval_frames.clone(),
+        fault_model: &config.faults,
+        masks: config.write_masks.then_some(MasksJson {
+            total: num_masks,
+            per_view: provenance,
+        }),
+        matches: config.write_matches.then_some(MatchesJson {
+            pairs: num_pairs,
+            grid: [gw, gh],
+            coords: "normalized",
+            precision: config.match_precision,
+        }),
+        gaussians: num_gaussians,
+        mesh: mesh_size,
+        parameters: config,
+    };
+    output::write_json(&gt.join("scene.json"), &file, true)?;
+    seconds.insert("total".to_string(), total.elapsed().as_secs_f64());
+
+    Ok(Summary {
+        out: out.to_path_buf(),
+        preset: config.preset.clone(),
+        seed: config.seed,
+        views: config.views,
+        resolution: [config.width, config.height],
+        objects: placed,
+        objects_requested: config.objects,
+        scene_objects: scene.len(),
+        masks: num_masks,
+        pairs: num_pairs,
+        match_grid: [gw, gh],
+        prompts: prompt_rows.len(),
+        gaussians: num_gaussians,
+        mesh: mesh_size,
+        eval_frames,
+        seconds,
+    })
+}
+
+/// Renders one view: depth (camera z, 0 = nothing), object ids and RGB, rows in parallel.
+pub fn render(scene: &Scene, cam: &Camera, depth: &mut [f32], ids: &mut [u32], rgb: &mut [u8]) {
+    let w = cam.width as usize;
+    let center = cam.center();
+    depth
+        .par_chunks_mut(w)
+        .zip(ids.par_chunks_mut(w))
+        .zip(rgb.par_chunks_mut(3 * w))
+        .enumerate()
+        .for_each(|(y, ((d, i), c))| {
+            for x in 0..w {
+                match scene.raycast(center, cam.ray(x as f64 + 0.5, y as f64 + 0.5)) {
+                    Some(hit) => {
+                        d[x] = hit.t as f32;
+                        i[x] = hit.object;
+                        c[3 * x..3 * x + 3].copy_from_slice(&scene.shade(&hit));
+                    }
+                    None => {
+                        d[x] = 0.0;
+                        i[x] = NO_OBJECT;
+                        c[3 * x..3 * x + 3].fill(0);
+                    }
+                }
+            }
+        });
+}
+
+fn meta(generator: &str) -> BTreeMap<String, String> {
+    BTreeMap::from([("generator".to_string(), generator.to_string())])
+}
+
+/// Removes `frame_NNNNN.<ext>` files in `dir` whose index is not in `keep`.
+fn remove_stale_frames(dir: &Path, ext: &str, keep: &[usize]) -> Result<()> {
+    let entries = std::fs::read_dir(dir).map_err(error::io_err(dir, "cannot list directory"))?;
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let index = name
+            .strip_prefix("frame_")
+            .and_then(|r| r.strip_suffix(&format!(".{ext}")))
+            .filter(|n| n.len() == 5)
+            .and_then(|n| n.parse::<usize>().ok());
+        if let Some(i) = index {
+            if !keep.contains(&i) {
+                output::remove_stale(&e.path())?;
+            }
+        }
+    }
+    Ok(())
+}
+
+#[derive(Serialize)]
+struct MaskObjects {
+    num_masks: usize,
+    masks: Vec<MaskObject>,
+}
+
+/// One line of `gt/mask_objects.json`.
+#[derive(Serialize)]
+struct MaskObject {
+    /// Global mask id.
+    id: usize,
+    view: usize,
+    /// View-local index (the value in the label map).
+    local: usize,
+    /// Dominant ground-truth object (most pixels), null for a mask on no object.
+    object: Option<u32>,
+    object_name: Option<String>,
+    /// NYU40 class of the dominant object.
+    class_id: Option<u32>,
+    /// Share of the mask's pixels on the dominant object.
+    purity: f64,
+    pixels: u64,
+    /// Object regions the fault model joined into this mask.
+    objects: Vec<u32>,
+    /// 0 or 1 if the mask is one half of a split, else null.
+    split_half: Option<u8>,
+    /// Class whose prototype dominates the feature.
+    feature_class: u32,
+    /// Class the feature was biased toward, if any.
+    wrong_class: Option<u32>,
+}
+
+#[derive(Serialize)]
+struct ObjectJson<'a> {
+    #[serde(flatten)]
+    spec: &'a ObjectSpec,
+    shape_kind: &'static str,
+    rotation_wxyz: [f64; 4],
+}
+
+#[derive(Serialize)]
+struct ClassJson {
+    id: u32,
+    name: String,
+    room: bool,
+    instances: usize,
+}
+
+#[derive(Serialize)]
+struct CamerasJson {
+    views: usize,
+    width: u32,
+    height: u32,
+    hfov_deg: f64,
+    image_names: Vec<String>,
+}
+
+#[derive(Serialize)]
+struct MasksJson {
+    total: usize,
+    per_view: Vec<ViewProvenance>,
+}
+
+#[derive(Serialize)]
+struct MatchesJson {
+    pairs: usize,
+    grid: [usize; 2],
+    coords: &'static str,
+    precision: MatchPrecision,
+}
+
+#[derive(Serialize)]
+struct SceneFile<'a> {
+    format: &'static str,
+    version: u32,
+    generator: String,
+    preset: String,
+    seed: u64,
+    label_space: &'static str,
+    room: scene::RoomJson,
+    classes: Vec<ClassJson>,
+    objects_requested: usize,
+    objects_placed: usize,
+    objects: Vec<ObjectJson<'a>>,
+    cameras: CamerasJson,
+    eval_frames: Vec<usize>,
+    fault_model: &'a FaultModel,
+    masks: Option<MasksJson>,
+    matches: Option<MatchesJson>,
+    gaussians: usize,
+    mesh: [usize; 2],
+    parameters: &'a Config,
+}
