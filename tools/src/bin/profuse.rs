@@ -11,7 +11,11 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser, Debug)]
-#[command(name = "profuse", version, about = "ProFuse: open-vocabulary 3D Gaussians without render-supervised training")]
+#[command(
+    name = "profuse",
+    version,
+    about = "ProFuse: open-vocabulary 3D Gaussians without render-supervised training"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
