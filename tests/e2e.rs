@@ -235,3 +235,58 @@ fn scene_io_failure_exits_1_and_writes_nothing() {
         "something was written"
     );
 }
+
+/// Every file `synth` writes is valid for `profuse inspect` (tiny and demo presets), and
+/// the tool's JSON summary describes what it wrote.
+#[test]
+fn profuse_inspect_validates_every_file_synth_writes() {
+    for preset in ["tiny", "demo"] {
+        let dir = tempfile::tempdir().unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_synth"))
+            .args(["--preset", preset, "--seed", "3", "--quiet", "--out"])
+            .arg(dir.path())
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let summary = json(&out);
+        let mut files = Vec::new();
+        let mut stack = vec![dir.path().to_path_buf()];
+        while let Some(d) = stack.pop() {
+            for e in std::fs::read_dir(&d).unwrap() {
+                let p = e.unwrap().path();
+                if p.is_dir() {
+                    stack.push(p);
+                } else if p.extension().is_some_and(|x| x == "safetensors") {
+                    files.push(p);
+                }
+            }
+        }
+        files.sort();
+        // cameras, masks, matches, prompts, gt/views, gt/mesh (+ gt/gaussians for demo)
+        let expected = if preset == "demo" { 7 } else { 6 };
+        assert_eq!(files.len(), expected, "{preset}: {files:?}");
+        for f in &files {
+            let out = profuse(&["inspect", f.to_str().unwrap()]);
+            assert!(
+                out.status.success(),
+                "{}: {}",
+                f.display(),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        let cams = json(&profuse(&[
+            "inspect",
+            dir.path().join("cameras.safetensors").to_str().unwrap(),
+        ]));
+        assert_eq!(cams["counts"]["views"], summary["views"], "{preset}");
+        let masks = json(&profuse(&[
+            "inspect",
+            dir.path().join("masks.safetensors").to_str().unwrap(),
+        ]));
+        assert_eq!(masks["counts"]["masks"], summary["masks"], "{preset}");
+    }
+}
