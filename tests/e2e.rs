@@ -290,3 +290,125 @@ fn profuse_inspect_validates_every_file_synth_writes() {
         assert_eq!(masks["counts"]["masks"], summary["masks"], "{preset}");
     }
 }
+
+fn splat_raster(args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_splat-raster"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .unwrap()
+}
+
+/// The synthetic scene's ground-truth Gaussians render through its own cameras, and the
+/// top-K dump is a valid `profuse.topk` file whose hits cover the image.
+#[test]
+fn splat_raster_renders_synth_views_and_dumps_valid_topk() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let out = Command::new(env!("CARGO_BIN_EXE_synth"))
+        .args([
+            "--preset",
+            "tiny",
+            "--seed",
+            "1",
+            "--gaussians",
+            "3000",
+            "--quiet",
+            "--out",
+        ])
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let g = scene.join("gt/gaussians.safetensors");
+    let cams = scene.join("cameras.safetensors");
+    let topk = dir.path().join("topk.safetensors");
+    let out = splat_raster(&[
+        "topk".as_ref(),
+        g.as_os_str(),
+        "--cameras".as_ref(),
+        cams.as_os_str(),
+        "--view".as_ref(),
+        "1".as_ref(),
+        "--k".as_ref(),
+        "8".as_ref(),
+        "--out".as_ref(),
+        topk.as_os_str(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j = json(&profuse(&["inspect", topk.to_str().unwrap()]));
+    assert_eq!(j["valid"], true, "{j}");
+    assert_eq!(j["counts"]["k"], 8);
+    let pixels = j["counts"]["width"].as_u64().unwrap() * j["counts"]["height"].as_u64().unwrap();
+    // Surfels cover the closed room, so most pixels have several contributors.
+    assert!(j["counts"]["hits"].as_u64().unwrap() > pixels, "{j}");
+
+    let renders = dir.path().join("renders");
+    let out = splat_raster(&[
+        "render".as_ref(),
+        g.as_os_str(),
+        "--cameras".as_ref(),
+        cams.as_os_str(),
+        "--view".as_ref(),
+        "1".as_ref(),
+        "--out-dir".as_ref(),
+        renders.as_os_str(),
+        "--color".as_ref(),
+        "--alpha".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let files: Vec<_> = std::fs::read_dir(&renders)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(files.len(), 2, "{files:?}");
+    assert!(files
+        .iter()
+        .all(|f| f.extension().is_some_and(|x| x == "png")
+            && std::fs::metadata(f).unwrap().len() > 100));
+}
+
+/// An orbit preview of the real guitar.ply covers a sensible share of the image.
+#[test]
+fn splat_raster_orbit_preview_of_guitar_ply() {
+    let Some(ply) = shared_data("splats/guitar.ply") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let out = splat_raster(&[
+        "render".as_ref(),
+        ply.as_os_str(),
+        "--orbit-angle".as_ref(),
+        "270".as_ref(),
+        "--width".as_ref(),
+        "160".as_ref(),
+        "--height".as_ref(),
+        "120".as_ref(),
+        "--out-dir".as_ref(),
+        dir.path().as_os_str(),
+        "--color".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j = json(&out);
+    assert_eq!(j["gaussians"], 90854);
+    let coverage = j["coverage"].as_f64().unwrap();
+    assert!((0.05..0.6).contains(&coverage), "coverage {coverage}");
+}
