@@ -17,6 +17,16 @@ fn profuse(args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// Fails the test with the tool's stderr when it did not exit 0.
+fn assert_succeeded(out: &Output) {
+    assert!(
+        out.status.success(),
+        "exit {:?}: {}",
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 fn json(out: &Output) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
         panic!(
@@ -29,11 +39,7 @@ fn json(out: &Output) -> serde_json::Value {
 #[test]
 fn inspect_reports_valid_files_with_exit_code_0() {
     let out = profuse(&["inspect", "formats/vectors/valid/masks.safetensors"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let j = json(&out);
     assert_eq!(j["valid"], true);
     assert_eq!(j["kind"], "masks");
@@ -131,11 +137,7 @@ fn scene_io_converts_guitar_ply_and_profuse_inspect_validates_it() {
         "--out".as_ref(),
         g.as_os_str(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let report = json(&out);
     assert_eq!(report["gaussians"], 90854);
     assert_eq!(report["clamped_opacity"], 667);
@@ -160,11 +162,7 @@ fn scene_io_converts_guitar_ply_and_profuse_inspect_validates_it() {
         "--out".as_ref(),
         back_ply.as_os_str(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let again = dir.path().join("again.safetensors");
     let out = scene_io(&[
         "ply-import".as_ref(),
@@ -196,11 +194,7 @@ fn scene_io_imports_fox_transforms_with_50_views() {
         "--out".as_ref(),
         cams.as_os_str(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     assert_eq!(json(&out)["views"], 50);
     assert_eq!(
         String::from_utf8_lossy(&out.stderr)
@@ -247,11 +241,7 @@ fn profuse_inspect_validates_every_file_synth_writes() {
             .arg(dir.path())
             .output()
             .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        assert_succeeded(&out);
         let summary = json(&out);
         let mut files = Vec::new();
         let mut stack = vec![dir.path().to_path_buf()];
@@ -319,11 +309,7 @@ fn splat_raster_renders_synth_views_and_dumps_valid_topk() {
         .arg(&scene)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let g = scene.join("gt/gaussians.safetensors");
     let cams = scene.join("cameras.safetensors");
     let topk = dir.path().join("topk.safetensors");
@@ -339,11 +325,7 @@ fn splat_raster_renders_synth_views_and_dumps_valid_topk() {
         "--out".as_ref(),
         topk.as_os_str(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let j = json(&profuse(&["inspect", topk.to_str().unwrap()]));
     assert_eq!(j["valid"], true, "{j}");
     assert_eq!(j["counts"]["k"], 8);
@@ -365,11 +347,7 @@ fn splat_raster_renders_synth_views_and_dumps_valid_topk() {
         "--alpha".as_ref(),
         "--quiet".as_ref(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let files: Vec<_> = std::fs::read_dir(&renders)
         .unwrap()
         .map(|e| e.unwrap().path())
@@ -402,11 +380,7 @@ fn splat_raster_orbit_preview_of_guitar_ply() {
         "--color".as_ref(),
         "--quiet".as_ref(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let j = json(&out);
     assert_eq!(j["gaussians"], 90854);
     let coverage = j["coverage"].as_f64().unwrap();
