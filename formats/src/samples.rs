@@ -479,20 +479,39 @@ fn set_meta(h: &mut serde_json::Map<String, Value>, key: &str, value: &str) {
 /// Re-types a tensor's header entry to `dtype`, rewriting its bytes so the header stays
 /// truthful (element values converted through f64).
 fn retype(valid: &[u8], tensor: &str, dtype: Dtype) -> Vec<u8> {
-    let Ok(c) = Container::from_vec("retype", valid.to_vec()) else {
+    rebuild(valid, tensor, |info, raw| {
+        Some((
+            dtype,
+            info.shape.clone(),
+            encode_f64(dtype, &decode_f64(info.dtype, &raw)),
+        ))
+    })
+}
+
+/// Re-serialises a file with its metadata, replacing tensor `tensor` by what `edit`
+/// returns for it (dtype, shape, bytes) or dropping it on `None`; other tensors are kept.
+fn rebuild(
+    valid: &[u8],
+    tensor: &str,
+    edit: impl FnOnce(&crate::container::TensorInfo, Vec<u8>) -> Option<(Dtype, Vec<usize>, Vec<u8>)>,
+) -> Vec<u8> {
+    let Ok(c) = Container::from_vec("rebuild", valid.to_vec()) else {
         return Vec::new();
     };
+    // The kind given here is overridden by the copied `format` metadata.
     let mut w = FileWriter::new(Kind::Cameras);
     for (k, v) in c.metadata() {
         w.meta(k, v.clone());
     }
+    let mut edit = Some(edit);
     for (name, info) in c.tensors() {
         let raw = c.raw(name).unwrap_or_default().to_vec();
-        if name == tensor {
-            let values = decode_f64(info.dtype, &raw);
-            w.raw_tensor(name, dtype, &info.shape, encode_f64(dtype, &values));
-        } else {
-            w.raw_tensor(name, info.dtype, &info.shape, raw);
+        let replacement = match edit.take_if(|_| name == tensor) {
+            Some(f) => f(info, raw),
+            None => Some((info.dtype, info.shape.clone(), raw)),
+        };
+        if let Some((dtype, shape, bytes)) = replacement {
+            w.raw_tensor(name, dtype, &shape, bytes);
         }
     }
     bytes_of(&w)
@@ -531,44 +550,14 @@ fn encode_f64(dtype: Dtype, values: &[f64]) -> Vec<u8> {
 
 /// Rewrites one tensor's header shape and bytes (e.g. drops a row), keeping the rest.
 fn reshape(valid: &[u8], tensor: &str, shape: &[usize]) -> Vec<u8> {
-    let Ok(c) = Container::from_vec("reshape", valid.to_vec()) else {
-        return Vec::new();
-    };
-    let mut w = FileWriter::new(Kind::Cameras);
-    for (k, v) in c.metadata() {
-        w.meta(k, v.clone());
-    }
-    for (name, info) in c.tensors() {
-        let raw = c.raw(name).unwrap_or_default().to_vec();
-        if name == tensor {
-            let n: usize = shape.iter().product::<usize>() * info.dtype.size();
-            let mut bytes = raw;
-            bytes.resize(n, 0);
-            w.raw_tensor(name, info.dtype, shape, bytes);
-        } else {
-            w.raw_tensor(name, info.dtype, &info.shape, raw);
-        }
-    }
-    bytes_of(&w)
+    rebuild(valid, tensor, |info, mut bytes| {
+        bytes.resize(shape.iter().product::<usize>() * info.dtype.size(), 0);
+        Some((info.dtype, shape.to_vec(), bytes))
+    })
 }
 
 fn without_tensor(valid: &[u8], tensor: &str) -> Vec<u8> {
-    let Ok(c) = Container::from_vec("drop", valid.to_vec()) else {
-        return Vec::new();
-    };
-    let mut w = FileWriter::new(Kind::Cameras);
-    for (k, v) in c.metadata() {
-        w.meta(k, v.clone());
-    }
-    for (name, info) in c.tensors().iter().filter(|(n, _)| n.as_str() != tensor) {
-        w.raw_tensor(
-            name,
-            info.dtype,
-            &info.shape,
-            c.raw(name).unwrap_or_default().to_vec(),
-        );
-    }
-    bytes_of(&w)
+    rebuild(valid, tensor, |_, _| None)
 }
 
 fn mutated<K: FileKind + Clone>(value: &K, edit: impl FnOnce(&mut K)) -> Vec<u8> {
