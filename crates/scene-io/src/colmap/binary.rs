@@ -14,7 +14,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use super::model::{CameraModel, ColmapCamera, ColmapImage, ColmapPoint};
+use super::model::{insert_camera, CameraModel, ColmapCamera, ColmapImage, ColmapPoint};
 use crate::error::{invalid, truncated, unsupported, Result};
 use crate::fsutil::{read_bytes, show};
 
@@ -162,25 +162,18 @@ pub(crate) fn read_cameras(path: &Path) -> Result<BTreeMap<u32, ColmapCamera>> {
         let params = (0..model.num_params())
             .map(|p| r.f64(&move || format!("camera {id} ({}) params[{p}]", model.name())))
             .collect::<Result<Vec<_>>>()?;
-        if cameras
-            .insert(
+        insert_camera(
+            &mut cameras,
+            ColmapCamera {
                 id,
-                ColmapCamera {
-                    id,
-                    model,
-                    width,
-                    height,
-                    params,
-                },
-            )
-            .is_some()
-        {
-            return Err(invalid(
-                &r.label,
-                format!("camera record {i} camera_id"),
-                format!("camera {id} is listed twice"),
-            ));
-        }
+                model,
+                width,
+                height,
+                params,
+            },
+            &r.label,
+            format!("camera record {i} camera_id"),
+        )?;
     }
     r.finish("camera records")?;
     Ok(cameras)

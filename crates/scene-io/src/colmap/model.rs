@@ -100,6 +100,25 @@ pub struct ColmapCamera {
     pub params: Vec<f64>,
 }
 
+/// Adds a camera to the model's table; a repeated CAMERA_ID is an error naming `file`
+/// and `field` (the line or record the duplicate came from).
+pub(crate) fn insert_camera(
+    cameras: &mut BTreeMap<u32, ColmapCamera>,
+    camera: ColmapCamera,
+    file: &str,
+    field: String,
+) -> crate::error::Result<()> {
+    let id = camera.id;
+    if cameras.insert(id, camera).is_some() {
+        return Err(crate::error::invalid(
+            file,
+            field,
+            format!("camera {id} is listed twice"),
+        ));
+    }
+    Ok(())
+}
+
 /// A registered image: world-to-camera pose and its 2D observations.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ColmapImage {

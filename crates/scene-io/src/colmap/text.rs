@@ -5,8 +5,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::str::FromStr;
 
-use super::model::{CameraModel, ColmapCamera, ColmapImage, ColmapPoint};
-use crate::error::{invalid, parse_err, unsupported, Result};
+use super::model::{insert_camera, CameraModel, ColmapCamera, ColmapImage, ColmapPoint};
+use crate::error::{parse_err, unsupported, Result};
 use crate::fsutil::{read_text, show};
 
 /// Whitespace-separated fields of one line, parsed with errors naming file, line, field.
@@ -104,25 +104,18 @@ pub(crate) fn read_cameras(path: &Path) -> Result<BTreeMap<u32, ColmapCamera>> {
             model.num_params(),
             model.name()
         ))?;
-        if cameras
-            .insert(
+        insert_camera(
+            &mut cameras,
+            ColmapCamera {
                 id,
-                ColmapCamera {
-                    id,
-                    model,
-                    width,
-                    height,
-                    params,
-                },
-            )
-            .is_some()
-        {
-            return Err(invalid(
-                &label,
-                format!("line {line}: CAMERA_ID"),
-                format!("camera {id} is listed twice"),
-            ));
-        }
+                model,
+                width,
+                height,
+                params,
+            },
+            &label,
+            format!("line {line}: CAMERA_ID"),
+        )?;
     }
     Ok(cameras)
 }
