@@ -391,15 +391,7 @@ pub(crate) fn check_finite<T: Copy + Into<f64>>(
 /// Every value finite, for a F16/F32 tensor.
 pub(crate) fn check_finite_floats(path: &str, tensor: &str, values: &Floats) -> Result<()> {
     match values {
-        Floats::F16(b) => match b.iter().position(|v| !v.is_finite()) {
-            None => Ok(()),
-            Some(index) => Err(FormatError::NonFinite {
-                path: path.to_string(),
-                tensor: tensor.to_string(),
-                index,
-                value: format_float(b[index].to_f64()),
-            }),
-        },
+        Floats::F16(b) => check_finite(path, tensor, b),
         Floats::F32(b) => check_finite(path, tensor, b),
     }
 }
