@@ -5,6 +5,22 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+// One module per stage tool; each uses the helpers defined in this file via `super::`.
+#[path = "e2e/fuse.rs"]
+mod fuse;
+#[path = "e2e/gs_init.rs"]
+mod gs_init;
+#[path = "e2e/metrics.rs"]
+mod metrics;
+#[path = "e2e/pq.rs"]
+mod pq;
+#[path = "e2e/query.rs"]
+mod query;
+#[path = "e2e/vertex_transfer.rs"]
+mod vertex_transfer;
+#[path = "e2e/warp_graph.rs"]
+mod warp_graph;
+
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
@@ -99,6 +115,16 @@ fn python_reader_agrees_with_rust_on_every_golden_vector() {
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+/// Runs a built tool binary of this package by name (`env!("CARGO_BIN_EXE_<name>")` path
+/// passed in by the caller) from the repository root.
+fn run_tool(exe: &str, args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(exe)
+        .args(args)
+        .current_dir(root())
+        .output()
+        .unwrap()
 }
 
 fn shared_data(rel: &str) -> Option<PathBuf> {

@@ -50,3 +50,17 @@ pub fn warn(quiet: bool, msg: &str) {
         let _ = writeln!(std::io::stderr().lock(), "warning: {msg}");
     }
 }
+
+/// Peak resident set size (VmHWM) of this process in MiB, from /proc/self/status
+/// (0 where unavailable). The `bench` subcommands report it.
+pub fn peak_rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<f64>().ok())
+        })
+        .map_or(0.0, |kb| kb / 1024.0)
+}

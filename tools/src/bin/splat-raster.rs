@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use profuse_formats::{Cameras, FileKind, Gaussians};
-use profuse_tools::{chatty, run, warn, BoxError};
+use profuse_tools::{chatty, peak_rss_mb, run, warn, BoxError};
 use serde_json::{json, Value};
 use splat_raster::{camera, DepthMode, Rasterizer, RenderOptions, ViewRender};
 
@@ -593,17 +593,4 @@ fn process_cpu_s() -> f64 {
         .filter_map(|s| s.split_whitespace().next()?.parse::<f64>().ok())
         .sum::<f64>()
         / 1e9
-}
-
-/// Peak resident set size (VmHWM) in MiB, from /proc/self/status (0 where unavailable).
-fn peak_rss_mb() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<f64>().ok())
-        })
-        .map_or(0.0, |kb| kb / 1024.0)
 }

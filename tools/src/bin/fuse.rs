@@ -1,0 +1,2 @@
+//! `fuse` tool (under construction).
+fn main() {}

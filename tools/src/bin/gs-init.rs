@@ -1,0 +1,2 @@
+//! `gs-init` tool (under construction).
+fn main() {}

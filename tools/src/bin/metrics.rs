@@ -1,0 +1,2 @@
+//! `metrics` tool (under construction).
+fn main() {}

@@ -1,0 +1,2 @@
+//! `pq` tool (under construction).
+fn main() {}

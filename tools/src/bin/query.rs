@@ -1,0 +1,2 @@
+//! `query` tool (under construction).
+fn main() {}

@@ -1,0 +1,2 @@
+//! `vertex-transfer` tool (under construction).
+fn main() {}

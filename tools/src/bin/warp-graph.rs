@@ -1,0 +1,2 @@
+//! `warp-graph` tool (under construction).
+fn main() {}
