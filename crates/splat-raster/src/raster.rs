@@ -464,7 +464,8 @@ impl Drop for Pooled<'_> {
 /// The bounded top-K lists of one tile, kept in place in the output rows of its tile row
 /// (no scratch copy): pixel (row, col) of the tile owns the K slots at
 /// `row * stride + base + col * k`, sorted by descending weight; slots past its fill count
-/// hold padding (weight 0, [`NO_GAUSSIAN`]), written when the tile starts.
+/// are stale until the tile ends and [`pad_unfilled`] writes padding (weight 0,
+/// [`NO_GAUSSIAN`]) there.
 struct TopKOut<'a> {
     k: usize,
     /// W · K: one image row of lists.
@@ -587,13 +588,9 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
         if let (true, Some(w), Some(id)) =
             (k > 0, row.weights.as_deref_mut(), row.ids.as_deref_mut())
         {
-            // Pad the tile's lists in the output; contributors are inserted in place.
+            // Contributors are inserted in place in the output; only the slots left
+            // unfilled are padded afterwards (a prefill would write every slot twice).
             let stride = ctx.width * k;
-            for ly in 0..y1 - y0 {
-                let span = ly * stride + x0 * k..ly * stride + x1 * k;
-                w[span.clone()].fill(0.0);
-                id[span].fill(NO_GAUSSIAN);
-            }
             let mut out = TopKOut {
                 k,
                 stride,
@@ -602,6 +599,7 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
                 id,
             };
             blend_tile::<true>(ctx, tile, [x0, x1, y0, y1], st, &mut out);
+            pad_unfilled(&mut out, x1 - x0, y1 - y0, &st.tk_n);
         } else {
             let mut none = TopKOut {
                 k: 0,
@@ -617,6 +615,26 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
     st.tile_start = start;
     st.tile_entries = list;
     total
+}
+
+/// Writes padding (weight 0, [`NO_GAUSSIAN`]) into the slots past each pixel's fill count
+/// `fill[row * TILE + col]` of a `cols` x `rows` tile.
+fn pad_unfilled(out: &mut TopKOut<'_>, cols: usize, rows: usize, fill: &[u32]) {
+    let k = out.k;
+    for row in 0..rows {
+        for col in 0..cols {
+            let n = fill.get(row * TILE + col).map_or(0, |&n| n as usize);
+            if n < k {
+                let slot = row * out.stride + out.base + col * k;
+                if let Some(w) = out.w.get_mut(slot + n..slot + k) {
+                    w.fill(0.0);
+                }
+                if let Some(id) = out.id.get_mut(slot + n..slot + k) {
+                    id.fill(NO_GAUSSIAN);
+                }
+            }
+        }
+    }
 }
 
 /// Front-to-back blend of one tile's depth-sorted splats. (Not inlined: the two
