@@ -29,6 +29,9 @@
 //!   failure is a [`SceneError`] naming the file, the field (PLY property, JSON key,
 //!   line, NumPy header key) and what was expected. Counts in headers never reserve more
 //!   memory than the file's remaining bytes could fill.
+//!   - [`keypoints`]: keypoint-pair `.npz` files (XFeat, LightGlue, LoFTR) → `+0.5`
+//!     (OpenCV puts pixel centres at integers), undistorted with [`undistort`] when the
+//!     cameras carry OpenCV k1 k2 p1 p2, so that every later stage is pinhole.
 //! * **No printing.** Warnings (skipped frames, missing optional files) are returned in
 //!   each importer's report; the `scene-io` tool prints them.
 //! * **Atomic writes.** Exports go to a temporary file next to the target, then are
@@ -69,11 +72,13 @@ pub mod colmap;
 mod error;
 mod fsutil;
 pub mod geometry;
+pub mod keypoints;
 pub mod langsplat;
 pub mod npy;
 pub mod ply;
 pub mod scannet;
 pub mod transforms;
+pub mod undistort;
 
 pub use colmap::{import_colmap, ColmapImport, ColmapOptions, ColmapReport};
 pub use error::{Result, SceneError};

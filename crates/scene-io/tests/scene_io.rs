@@ -1694,3 +1694,184 @@ fn parsers_never_panic_on_truncated_or_corrupted_input() {
     }
     assert!(import_colmap(dir.path(), &ColmapOptions::default()).is_ok());
 }
+
+// ---------------------------------------------------------------------------------------
+// keypoint pairs and undistortion
+
+/// Writes a keypoint-pair `.npz` with two (n, 2) float32 arrays.
+fn write_pair_npz(path: &Path, keys: [&str; 2], rows: [&[[f64; 2]]; 2]) {
+    let mut zip = zip::ZipWriter::new(std::fs::File::create(path).unwrap());
+    let opts = zip::write::SimpleFileOptions::default();
+    for (key, pts) in keys.iter().zip(rows) {
+        let flat: Vec<f32> = pts.iter().flatten().map(|&x| x as f32).collect();
+        let array = NpyArray::new(vec![pts.len(), 2], NpyData::F32(flat)).unwrap();
+        zip.start_file(format!("{key}.npy"), opts).unwrap();
+        zip.write_all(&array.to_bytes()).unwrap();
+    }
+    zip.finish().unwrap();
+}
+
+/// Pinhole projection (no lens) in SPEC.md pixel coordinates.
+fn project_pinhole(c: &Cameras, v: usize, p: [f64; 3]) -> [f64; 2] {
+    let q = c.project(v, p);
+    [q[0], q[1]]
+}
+
+#[test]
+fn keypoint_pairs_are_shifted_undistorted_and_match_pinhole_projections_on_fox_cameras() {
+    use scene_io::keypoints::{import_keypoint_pairs, KeypointOptions};
+    let Some(json) = shared("fox/transforms.json") else {
+        return;
+    };
+    let (cams, _) = read_transforms(&json).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    // 3D points seen through a grid of view 0's pixels at 2-4 units depth, so that they
+    // span the image (where the lens moves points by pixels, not fractions).
+    let (r0, t0) = cams.pose(0);
+    let [fx, fy, cx, cy] = cams.intrinsics[0];
+    let pts: Vec<[f64; 3]> = (0..200)
+        .map(|i| {
+            let (u, v) = (
+                50.0 + (i % 20) as f64 * 50.0,
+                80.0 + (i / 20) as f64 * 180.0,
+            );
+            let d = 2.0 + (i % 7) as f64 * 0.3;
+            let c = [(u - cx) / fx * d, (v - cy) / fy * d, d];
+            // world = Rᵀ (c − t)
+            let q: Vec<f64> = (0..3).map(|k| c[k] - t0[k]).collect();
+            [0, 1, 2].map(|a| (0..3).map(|k| r0[k][a] * q[k]).sum())
+        })
+        .collect();
+    let (vi, vj) = (0, 1);
+    let opencv = |v: usize, p: [f64; 3]| {
+        let [u, w] = project_distorted(&cams, v, p);
+        [u - 0.5, w - 0.5]
+    };
+    let ki: Vec<[f64; 2]> = pts.iter().map(|&p| opencv(vi, p)).collect();
+    let kj: Vec<[f64; 2]> = pts.iter().map(|&p| opencv(vj, p)).collect();
+    let stem = |v: usize| {
+        Path::new(&cams.image_names[v])
+            .file_stem()
+            .unwrap()
+            .to_string_lossy()
+            .into_owned()
+    };
+    let file = dir.path().join(format!("{}_{}.npz", stem(vi), stem(vj)));
+    write_pair_npz(&file, ["kpts_i", "kpts_j"], [&ki, &kj]);
+    // A pair naming a view the cameras lack is skipped, not an error.
+    let stray = dir.path().join(format!("{}_9999.npz", stem(vi)));
+    write_pair_npz(&stray, ["kpts_i", "kpts_j"], [&ki[..3], &kj[..3]]);
+
+    let files = vec![stray.clone(), file.clone()];
+    let (m, report) =
+        import_keypoint_pairs(&files, &cams, "cams", &KeypointOptions::default()).unwrap();
+    assert_eq!(report.pairs, 1);
+    assert_eq!(report.skipped.len(), 1);
+    assert!(report.undistorted);
+    assert_eq!(report.dropped_undistort, 0);
+    assert_eq!(m.pairs.to_vec(), vec![[vi as u32, vj as u32]]);
+    assert_eq!(m.points_i.len(), pts.len());
+    let mut worst: f64 = 0.0;
+    for (n, &p) in pts.iter().enumerate() {
+        let (a, b) = (project_pinhole(&cams, vi, p), project_pinhole(&cams, vj, p));
+        for (got, want) in [(m.points_i[n], a), (m.points_j[n], b)] {
+            worst = worst
+                .max((f64::from(got[0]) - want[0]).abs())
+                .max((f64::from(got[1]) - want[1]).abs());
+        }
+    }
+    // float32 keypoints in the file limit the accuracy (1e-4 px at 2000 px).
+    assert!(worst < 2e-3, "worst deviation {worst} px");
+    // Without undistortion the same keypoints are off by the lens (pixels, not 1e-3).
+    let raw = KeypointOptions {
+        undistort: false,
+        ..Default::default()
+    };
+    let (m2, _) = import_keypoint_pairs(std::slice::from_ref(&file), &cams, "cams", &raw).unwrap();
+    let shift = (0..pts.len())
+        .map(|n| (f64::from(m2.points_i[n][0]) - project_pinhole(&cams, vi, pts[n])[0]).abs())
+        .fold(0.0, f64::max);
+    assert!(shift > 1.0, "lens shift only {shift} px");
+
+    // Wrong array names and mismatched row counts are typed errors naming the file.
+    let named = KeypointOptions {
+        key_i: "keypoints0".into(),
+        ..Default::default()
+    };
+    let err =
+        import_keypoint_pairs(std::slice::from_ref(&file), &cams, "cams", &named).unwrap_err();
+    assert_eq!(err.code(), "missing");
+    assert!(err.to_string().contains("keypoints0"), "{err}");
+    write_pair_npz(&file, ["kpts_i", "kpts_j"], [&ki, &kj[..5]]);
+    let err =
+        import_keypoint_pairs(&[file], &cams, "cams", &KeypointOptions::default()).unwrap_err();
+    assert_eq!(err.code(), "invalid");
+    assert!(err.to_string().contains("kpts_j"), "{err}");
+}
+
+#[test]
+fn real_fox_xfeat_matches_import_with_every_pair() {
+    use scene_io::keypoints::{import_keypoint_pairs, KeypointOptions};
+    let (Some(json), Some(dir)) = (shared("fox/transforms.json"), shared("fox/matches_xfeat"))
+    else {
+        return;
+    };
+    let (cams, _) = read_transforms(&json).unwrap();
+    let files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "npz"))
+        .collect();
+    let (m, report) =
+        import_keypoint_pairs(&files, &cams, "cams", &KeypointOptions::default()).unwrap();
+    assert_eq!(report.pairs, 92);
+    assert!(report.skipped.is_empty(), "{:?}", report.skipped);
+    // The README's 259,704 matches, minus any beyond the lens model's fold (none expected).
+    assert_eq!(report.matches + report.dropped_undistort, 259_704);
+    assert!(report.dropped_undistort < 100);
+    m.validate("fox sparse matches").unwrap();
+}
+
+#[test]
+fn undistort_scene_writes_pinhole_cameras_and_resampled_images() {
+    use scene_io::undistort::{distort_pixel, undistort_scene};
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (40u32, 30u32);
+    // A smooth image, so bilinear resampling at a distorted position is predictable.
+    let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 6) as u8, (y * 8) as u8, 77]));
+    std::fs::create_dir_all(dir.path().join("images")).unwrap();
+    img.save(dir.path().join("images/a.png")).unwrap();
+    let cams = Cameras {
+        image_names: vec!["images/a.png".into()],
+        image_size: vec![[w, h]].into(),
+        intrinsics: vec![[30.0, 30.0, 20.0, 15.0]].into(),
+        world_to_camera: vec![[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]].into(),
+        distortion: Some(vec![[0.1, -0.05, 0.001, -0.002]].into()),
+        ..Default::default()
+    };
+    let out = dir.path().join("out");
+    let (pin, report) = undistort_scene(&cams, dir.path(), &out).unwrap();
+    assert_eq!(report.images, 1);
+    assert!(pin.distortion.is_none());
+    assert_eq!(pin.image_names, vec!["images/a.png".to_string()]);
+    let und = image::open(out.join("images/a.png")).unwrap().to_rgb8();
+    // Output pixel (x, y) shows the input at the distorted position of its centre: the red
+    // channel is 6·(u − 0.5) there, green 8·(v − 0.5), within rounding.
+    for (x, y) in [(5u32, 5u32), (20, 15), (33, 24)] {
+        let (u, v) = distort_pixel(
+            cams.intrinsics[0],
+            cams.distortion.as_ref().unwrap()[0],
+            f64::from(x) + 0.5,
+            f64::from(y) + 0.5,
+        );
+        let p = und.get_pixel(x, y);
+        assert!(
+            (f64::from(p[0]) - 6.0 * (u - 0.5)).abs() <= 1.0,
+            "{x},{y}: {p:?} vs u {u}"
+        );
+        assert!(
+            (f64::from(p[1]) - 8.0 * (v - 0.5)).abs() <= 1.0,
+            "{x},{y}: {p:?} vs v {v}"
+        );
+    }
+}

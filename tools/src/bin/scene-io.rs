@@ -11,6 +11,7 @@ use clap::{Parser, Subcommand};
 use profuse_formats::{Cameras, FileKind, Gaussians};
 use profuse_tools::{chatty, run, warn, BoxError};
 use scene_io::colmap::{import_colmap, ColmapOptions};
+use scene_io::keypoints::{import_keypoint_pairs, KeypointOptions};
 use scene_io::langsplat::{import_langsplat, LangSplatOptions};
 use scene_io::ply::{read_inria_ply, write_inria_ply};
 use scene_io::scannet::{
@@ -18,6 +19,7 @@ use scene_io::scannet::{
     read_scannet_npy, AxisAlignment, ScannetOptions,
 };
 use scene_io::transforms::read_transforms;
+use scene_io::undistort::undistort_scene;
 use serde_json::{json, Map, Value};
 
 #[derive(Debug, Parser)]
@@ -138,6 +140,47 @@ enum Command {
         /// Seg-map level: 0 default, 1 s, 2 m, 3 l.
         #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=3))]
         level: u8,
+    },
+    /// Keypoint-pair files (`<stem_i>_<stem_j>.npz`, two (n, 2) arrays: XFeat, LightGlue,
+    /// LoFTR) → sparse_matches file. Keypoints are shifted by +0.5 (OpenCV integer pixel
+    /// centres) and undistorted when the cameras carry a lens model; files naming views the
+    /// cameras lack are skipped with a warning.
+    Keypoints {
+        /// Pair files, or directories whose *.npz files are all read.
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
+        /// The cameras file whose image stems the file names refer to.
+        #[arg(long)]
+        cameras: PathBuf,
+        /// The sparse_matches file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Array name of the view-i keypoints.
+        #[arg(long, default_value = "kpts_i")]
+        key_i: String,
+        /// Array name of the view-j keypoints.
+        #[arg(long, default_value = "kpts_j")]
+        key_j: String,
+        /// The keypoints already use SPEC.md's corner origin (pixel centres at +0.5): do not
+        /// shift them.
+        #[arg(long)]
+        corner_origin: bool,
+        /// Keep distorted keypoints even when the cameras have a lens model.
+        #[arg(long)]
+        no_undistort: bool,
+    },
+    /// Undistort a scene's images with its cameras' OpenCV lens model: writes
+    /// OUT_DIR/images/<stem>.png and OUT_DIR/cameras.safetensors (pinhole, same intrinsics).
+    Undistort {
+        /// The cameras file (with `distortion`).
+        #[arg(long)]
+        cameras: PathBuf,
+        /// The directory the cameras' image names are relative to.
+        #[arg(long)]
+        scene_dir: PathBuf,
+        /// The output scene directory.
+        #[arg(long)]
+        out_dir: PathBuf,
     },
 }
 
@@ -276,7 +319,64 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             done(quiet, &out);
             Ok(with_paths("langsplat", &features_dir, &out, &report)?)
         }
+        Command::Keypoints {
+            inputs,
+            cameras,
+            out,
+            key_i,
+            key_j,
+            corner_origin,
+            no_undistort,
+        } => {
+            let cams = Cameras::read(&cameras)?;
+            let files = npz_files(&inputs)?;
+            let options = KeypointOptions {
+                key_i,
+                key_j,
+                integer_centres: !corner_origin,
+                undistort: !no_undistort,
+            };
+            let label = cameras.display().to_string();
+            let (mut matches, report) = import_keypoint_pairs(&files, &cams, &label, &options)?;
+            warn_all(quiet, &report.skipped);
+            stamp(&mut matches.extra, "keypoints");
+            matches.write(&out)?;
+            done(quiet, &out);
+            Ok(with_paths("keypoints", &cameras, &out, &report)?)
+        }
+        Command::Undistort {
+            cameras,
+            scene_dir,
+            out_dir,
+        } => {
+            let cams = Cameras::read(&cameras)?;
+            let (mut pinhole, report) = undistort_scene(&cams, &scene_dir, &out_dir)?;
+            stamp(&mut pinhole.extra, "undistort");
+            let out = out_dir.join("cameras.safetensors");
+            pinhole.write(&out)?;
+            done(quiet, &out);
+            Ok(with_paths("undistort", &cameras, &out, &report)?)
+        }
     }
+}
+
+/// The `.npz` files named on the command line, directories expanded (sorted).
+fn npz_files(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, BoxError> {
+    let mut files = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(input)
+                .map_err(|e| format!("{}: cannot list the directory: {e}", input.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().is_some_and(|x| x == "npz"))
+                .collect();
+            found.sort();
+            files.extend(found);
+        } else {
+            files.push(input.clone());
+        }
+    }
+    Ok(files)
 }
 
 /// Records the producing tool in the file's metadata (SPEC.md 3.1 `generator`).

@@ -1,0 +1,228 @@
+//! Keypoint-pair files (one `.npz` per view pair, two (n, 2) arrays of matched pixel
+//! positions: the layout XFeat, LightGlue and LoFTR users save) to a `sparse_matches` file.
+//!
+//! * **Which views.** A file is named `<stem_i>_<stem_j>.npz`, where a stem is the file
+//!   name without extension of an `image_names` entry of the cameras file. Stems may contain
+//!   underscores: every split point is tried and exactly one must name two views. Files
+//!   whose stems name no view of the cameras (a frame dropped on import because its image
+//!   is missing) are skipped and listed in the report; a stem that matches two views is an
+//!   error.
+//! * **Pixel convention.** Matchers report OpenCV keypoints (integer = pixel centre), so
+//!   `+0.5` is added by default to reach SPEC.md's corner origin; `integer_centres = false`
+//!   keeps the values.
+//! * **Lens distortion.** When the cameras carry `distortion`, both keypoints of a match are
+//!   undistorted ([`crate::undistort`]) into the pinhole camera with the same intrinsics,
+//!   so everything downstream is pinhole; a match either of whose points cannot be
+//!   undistorted (beyond the model's fold) is dropped and counted.
+//! * **Certainty.** Keypoint matchers give none, so every match gets 1.
+//! * Pairs appear in file-name order; rows keep their order within a file.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use profuse_formats::{Cameras, SparseMatches};
+use serde::Serialize;
+
+use crate::error::{invalid, missing, Result};
+use crate::fsutil::show;
+use crate::npy::read_npz;
+use crate::undistort::undistort_pixel;
+
+/// How to read the keypoint files.
+#[derive(Debug, Clone)]
+pub struct KeypointOptions {
+    /// Array holding the view-i keypoints (XFeat scripts: `kpts_i`; LightGlue: often `keypoints0`).
+    pub key_i: String,
+    /// Array holding the view-j keypoints.
+    pub key_j: String,
+    /// Keypoints put pixel centres at integers (OpenCV): add 0.5.
+    pub integer_centres: bool,
+    /// Undistort with the cameras' lens model when they have one.
+    pub undistort: bool,
+}
+
+impl Default for KeypointOptions {
+    fn default() -> Self {
+        KeypointOptions {
+            key_i: "kpts_i".into(),
+            key_j: "kpts_j".into(),
+            integer_centres: true,
+            undistort: true,
+        }
+    }
+}
+
+/// What the import did.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct KeypointReport {
+    /// Pair files read.
+    pub pairs: usize,
+    /// Matches written.
+    pub matches: usize,
+    /// Matches dropped because a point could not be undistorted.
+    pub dropped_undistort: usize,
+    /// Whether the keypoints were undistorted.
+    pub undistorted: bool,
+    /// Files skipped, with the reason.
+    pub skipped: Vec<String>,
+}
+
+/// Imports keypoint-pair files into sparse matches between the views of `cameras`.
+pub fn import_keypoint_pairs(
+    files: &[PathBuf],
+    cameras: &Cameras,
+    cameras_label: &str,
+    opts: &KeypointOptions,
+) -> Result<(SparseMatches, KeypointReport)> {
+    let stems = view_stems(cameras, cameras_label)?;
+    let mut files = files.to_vec();
+    files.sort();
+    let mut report = KeypointReport {
+        undistorted: opts.undistort && cameras.distortion.is_some(),
+        ..Default::default()
+    };
+    let mut pairs = Vec::new();
+    let mut offsets = vec![0u64];
+    let (mut points_i, mut points_j) = (Vec::new(), Vec::new());
+    let mut seen = BTreeMap::new();
+    for file in &files {
+        let label = show(file);
+        let Some((vi, vj)) = pair_views(file, &stems) else {
+            report.skipped.push(format!(
+                "{label}: the name is not <stem_i>_<stem_j>.npz with two image stems of {cameras_label}"
+            ));
+            continue;
+        };
+        if let Some(first) = seen.insert((vi, vj), label.clone()) {
+            return Err(invalid(
+                &label,
+                "file name",
+                format!("pair ({vi}, {vj}) was already read from {first}"),
+            ));
+        }
+        let (ki, kj) = read_pair(file, opts)?;
+        for (a, b) in ki.into_iter().zip(kj) {
+            let a = to_pinhole(cameras, vi, a, opts);
+            let b = to_pinhole(cameras, vj, b, opts);
+            match (a, b) {
+                (Some(a), Some(b)) => {
+                    points_i.push(a);
+                    points_j.push(b);
+                }
+                _ => report.dropped_undistort += 1,
+            }
+        }
+        pairs.push([vi as u32, vj as u32]);
+        offsets.push(points_i.len() as u64);
+        report.pairs += 1;
+    }
+    report.matches = points_i.len();
+    let n = points_i.len();
+    let matches = SparseMatches {
+        num_views: cameras.len(),
+        pairs: pairs.into(),
+        pair_offsets: offsets.into(),
+        points_i: points_i.into(),
+        points_j: points_j.into(),
+        certainty: vec![1.0f32; n].into(),
+        extra: Default::default(),
+    };
+    Ok((matches, report))
+}
+
+/// View index of each image stem; an error when two views share a stem.
+fn view_stems(cameras: &Cameras, label: &str) -> Result<BTreeMap<String, usize>> {
+    let mut stems = BTreeMap::new();
+    for (v, name) in cameras.image_names.iter().enumerate() {
+        let stem = Path::new(name)
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        if let Some(other) = stems.insert(stem.clone(), v) {
+            return Err(invalid(
+                label,
+                "image_names",
+                format!("views {other} and {v} share the file stem {stem:?}, so pair files cannot name them"),
+            ));
+        }
+    }
+    Ok(stems)
+}
+
+/// The two views a `<stem_i>_<stem_j>.npz` file name refers to.
+fn pair_views(file: &Path, stems: &BTreeMap<String, usize>) -> Option<(usize, usize)> {
+    let name = file.file_stem()?.to_str()?;
+    let mut found = None;
+    for (at, _) in name.match_indices('_') {
+        if let (Some(&i), Some(&j)) = (stems.get(&name[..at]), stems.get(&name[at + 1..])) {
+            if found.is_some() {
+                return None;
+            }
+            found = Some((i, j));
+        }
+    }
+    found.filter(|(i, j)| i != j)
+}
+
+/// The two keypoint arrays of a pair file as (x, y) rows, checked for shape and finiteness.
+/// Matched keypoints of one pair file: (x, y) rows of view i and of view j.
+type KeypointRows = (Vec<[f64; 2]>, Vec<[f64; 2]>);
+
+fn read_pair(file: &Path, opts: &KeypointOptions) -> Result<KeypointRows> {
+    let label = show(file);
+    let arrays = read_npz(file)?;
+    let points = |key: &str| -> Result<Vec<[f64; 2]>> {
+        let a = arrays.get(key).ok_or_else(|| {
+            missing(
+                &label,
+                key,
+                format!(
+                    "an (n, 2) array; the file has {:?} (choose names with --key-i/--key-j)",
+                    arrays.keys().collect::<Vec<_>>()
+                ),
+            )
+        })?;
+        if a.shape.len() != 2 || a.shape[1] != 2 {
+            return Err(invalid(
+                &label,
+                key,
+                format!("shape {:?}, expected (n, 2)", a.shape),
+            ));
+        }
+        let v = a.to_f64_vec();
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(crate::SceneError::NonFinite {
+                path: label.clone(),
+                field: key.to_string(),
+                index: i / 2,
+                value: v[i].to_string(),
+            });
+        }
+        Ok(v.chunks_exact(2).map(|c| [c[0], c[1]]).collect())
+    };
+    let (ki, kj) = (points(&opts.key_i)?, points(&opts.key_j)?);
+    if ki.len() != kj.len() {
+        return Err(invalid(
+            &label,
+            opts.key_j.as_str(),
+            format!("{} rows, but {} has {}", kj.len(), opts.key_i, ki.len()),
+        ));
+    }
+    Ok((ki, kj))
+}
+
+/// A keypoint in SPEC.md pixel coordinates of the pinhole camera of view `v`.
+fn to_pinhole(
+    cameras: &Cameras,
+    v: usize,
+    p: [f64; 2],
+    opts: &KeypointOptions,
+) -> Option<[f32; 2]> {
+    let shift = if opts.integer_centres { 0.5 } else { 0.0 };
+    let (u, w) = (p[0] + shift, p[1] + shift);
+    let (u, w) = match (&cameras.distortion, opts.undistort) {
+        (Some(d), true) if d[v] != [0.0; 4] => undistort_pixel(cameras.intrinsics[v], d[v], u, w)?,
+        _ => (u, w),
+    };
+    Some([u as f32, w as f32])
+}
