@@ -194,14 +194,14 @@ pub fn category_masks(frame: &LabelFrame) -> BTreeMap<String, Mask> {
     out
 }
 
-/// The file name (without `.png`) of a query's mask: the query text with `/`, `\` and NUL
-/// replaced by `_` (and `_` prefixed to an empty, `.` or `..` result). Writers of
+/// The file name (without `.png`) of a query's mask: the query text with `/`, `\` and
+/// control characters (NUL included) replaced by `_` (and `_` prefixed to an empty, `.` or `..` result). Writers of
 /// prediction folders (the `query` tool) use the same function.
 pub fn query_file_name(query: &str) -> String {
     let name: String = query
         .chars()
         .map(|c| {
-            if matches!(c, '/' | '\\' | '\0') {
+            if matches!(c, '/' | '\\') || c.is_control() {
                 '_'
             } else {
                 c
