@@ -58,6 +58,11 @@ enum Command {
         /// Write `<stem>_alpha.png`.
         #[arg(long)]
         alpha: bool,
+        /// A photo of the same view (same size): write `<stem>_side_by_side.png` (render
+        /// left, photo right) and report `psnr_covered`, the PSNR of the render against the
+        /// photo over the pixels it covers (accumulated alpha > 0.5).
+        #[arg(long, value_name = "IMAGE")]
+        photo: Option<PathBuf>,
     },
     /// Dump the top-K contributors of one view to a `profuse.topk` file (SPEC.md §4.14):
     /// `ids` U32 [H,W,K] (4294967295 = none), `weights` F32 [H,W,K] (descending, ties in
@@ -190,10 +195,11 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             color,
             depth,
             alpha,
+            photo,
         } => {
             let g = load_scene(&scene, quiet)?;
             let (cams, v, stem, view_json) = resolve_view(&g, &view)?;
-            let color = color || !(depth || alpha);
+            let color = color || !(depth || alpha) || photo.is_some();
             let opts = RenderOptions {
                 color,
                 depth: if depth {
@@ -254,6 +260,17 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
                 files.insert("alpha".into(), json!(path));
             }
             let coverage = a.iter().filter(|v| **v > 0.5).count() as f64 / a.len().max(1) as f64;
+            if let (Some(photo), Some(c)) = (&photo, out.color()) {
+                let (psnr, side) = compare_with_photo(photo, c, a, &out)?;
+                let path = out_dir.join(format!("{stem}_side_by_side.png"));
+                let tmp = temp_path(&path);
+                side.save_with_format(&tmp, image::ImageFormat::Png)
+                    .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+                std::fs::rename(&tmp, &path)
+                    .map_err(|e| format!("cannot rename into {}: {e}", path.display()))?;
+                files.insert("side_by_side".into(), json!(path));
+                report["psnr_covered"] = json!(psnr);
+            }
             report["scene"] = json!(scene);
             report["gaussians"] = json!(g.len());
             report["view"] = view_json;
@@ -529,6 +546,54 @@ fn orbit_pose(
 
 fn to_u8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+/// PSNR (dB, 8-bit peak) of the rendered colour against a photo over the pixels whose
+/// accumulated alpha exceeds 0.5 (`None` when none does), and the render and the photo
+/// side by side.
+fn compare_with_photo(
+    photo: &Path,
+    color: &[f32],
+    alpha: &[f32],
+    out: &ViewRender,
+) -> Result<(Option<f64>, image::RgbImage), BoxError> {
+    let img = image::open(photo)
+        .map_err(|e| format!("{}: cannot read the photo: {e}", photo.display()))?
+        .to_rgb8();
+    let (w, h) = (out.width() as u32, out.height() as u32);
+    if img.dimensions() != (w, h) {
+        return Err(format!(
+            "{}: the photo is {}x{}, the rendered view {w}x{h}",
+            photo.display(),
+            img.width(),
+            img.height()
+        )
+        .into());
+    }
+    let (mut se, mut n) = (0.0f64, 0usize);
+    let mut side = image::RgbImage::new(2 * w, h);
+    for (i, (px, a)) in img.pixels().zip(alpha).enumerate() {
+        let (x, y) = (i as u32 % w, i as u32 / w);
+        let r = [0, 1, 2].map(|c| to_u8(color[i * 3 + c]));
+        side.put_pixel(x, y, image::Rgb(r));
+        side.put_pixel(w + x, y, *px);
+        if *a > 0.5 {
+            for c in 0..3 {
+                let d = f64::from(r[c]) - f64::from(px[c]);
+                se += d * d;
+            }
+            n += 1;
+        }
+    }
+    let psnr = (n > 0).then(|| {
+        let mse = se / (3 * n) as f64;
+        if mse > 0.0 {
+            10.0 * (255.0f64 * 255.0 / mse).log10()
+        } else {
+            f64::INFINITY
+        }
+    });
+    Ok((psnr, side))
 }
 
 /// Writes a PNG atomically (temporary file next to it, then rename).
