@@ -1,0 +1,106 @@
+#!/usr/bin/env bash
+# Triangulate the real fox scene from real XFeat keypoint matches and check the Gaussians
+# against photos of views that took no part in the triangulation.
+#
+#   examples/fox.sh SHARED_FOX_DIR OUT_DIR
+#
+# SHARED_FOX_DIR holds transforms.json, images/ and matches_xfeat/ (see its README).
+# Steps, each a plumbing tool of this workspace:
+#   1. scene-io transforms   transforms.json -> cameras with OpenCV lens (k1 k2 p1 p2)
+#   2. scene-io undistort    photos -> pinhole photos + pinhole cameras (same intrinsics)
+#   3. scene-io keypoints    XFeat .npz pairs -> undistorted sparse matches, leaving out every
+#                            pair that touches a held-out view
+#   4. gs-init run           triangulate, gate (reprojection in both views, behind camera,
+#                            triangulation angle), initialise Gaussians (σ = 3 reference
+#                            pixels at the point's depth: k-NN scales let the few far-off
+#                            points that survive the gates blow up into screen-filling blobs)
+#   5. splat-raster render   the three held-out views, side by side with their photos
+# Prints one JSON object: gaussians, median_reproj_px, rejected_frac, heldout_psnr,
+# heldout_coverage, plus the per-view figures and the rejection counts.
+set -euo pipefail
+
+if [[ $# -ne 2 ]]; then
+    echo "usage: $0 SHARED_FOX_DIR OUT_DIR" >&2
+    exit 2
+fi
+FOX=$1
+OUT=$2
+# Views held out of triangulation: spread over the capture (0-based indices into the
+# imported cameras; their image stems are looked up below).
+HELDOUT=(${FOX_HELDOUT:-10 25 40})
+here=$(cd "$(dirname "$0")/.." && pwd)
+# PROFUSE_BIN_DIR: use already built tools (the test suite passes its own); else build them.
+if [[ -n ${PROFUSE_BIN_DIR:-} ]]; then
+    bin=$PROFUSE_BIN_DIR
+else
+    cargo build --quiet --release --manifest-path "$here/Cargo.toml" -p profuse-tools \
+        --bin scene-io --bin gs-init --bin splat-raster >&2
+    bin=$here/target/release
+fi
+
+mkdir -p "$OUT"
+"$bin/scene-io" --quiet transforms "$FOX/transforms.json" --out "$OUT/cameras_distorted.safetensors" >/dev/null
+"$bin/scene-io" --quiet undistort --cameras "$OUT/cameras_distorted.safetensors" \
+    --scene-dir "$FOX" --out-dir "$OUT/scene" >/dev/null
+
+# Image stems of the held-out views, from the imported cameras.
+stems=$(python3 - "$OUT/scene/cameras.safetensors" "${HELDOUT[@]}" <<'EOF'
+import json, struct, sys, pathlib
+with open(sys.argv[1], "rb") as f:
+    n = struct.unpack("<Q", f.read(8))[0]
+    names = json.loads(json.loads(f.read(n))["__metadata__"]["image_names"])
+print(" ".join(pathlib.Path(names[int(v)]).stem for v in sys.argv[2:]))
+EOF
+)
+read -r -a held_stems <<<"$stems"
+
+pairs=()
+for f in "$FOX"/matches_xfeat/*.npz; do
+    name=$(basename "$f" .npz)
+    keep=1
+    for s in "${held_stems[@]}"; do
+        [[ $name == "${s}_"* || $name == *"_${s}" ]] && keep=0
+    done
+    [[ $keep == 1 ]] && pairs+=("$f")
+done
+"$bin/scene-io" --quiet keypoints "${pairs[@]}" --cameras "$OUT/cameras_distorted.safetensors" \
+    --out "$OUT/scene/sparse_matches.safetensors" >"$OUT/keypoints.json"
+
+"$bin/gs-init" --quiet run --cameras "$OUT/scene/cameras.safetensors" --images "$OUT/scene" \
+    --sparse-matches "$OUT/scene/sparse_matches.safetensors" --scale pixels:3 \
+    --out "$OUT/gaussians.safetensors" >"$OUT/gs_init.json"
+
+mkdir -p "$OUT/heldout"
+for i in "${!HELDOUT[@]}"; do
+    v=${HELDOUT[$i]}
+    "$bin/splat-raster" --quiet render "$OUT/gaussians.safetensors" \
+        --cameras "$OUT/scene/cameras.safetensors" --view "$v" \
+        --photo "$OUT/scene/images/${held_stems[$i]}.png" \
+        --out-dir "$OUT/heldout" >"$OUT/heldout/view_$v.json"
+done
+
+python3 - "$OUT" "${HELDOUT[@]}" <<'EOF'
+import json, sys, pathlib
+out = pathlib.Path(sys.argv[1])
+g = json.loads((out / "gs_init.json").read_text())
+k = json.loads((out / "keypoints.json").read_text())
+views = []
+for v in sys.argv[2:]:
+    r = json.loads((out / "heldout" / f"view_{v}.json").read_text())
+    views.append({"view": int(v), "psnr_covered": r.get("psnr_covered"),
+                  "coverage": r["coverage"], "side_by_side": r["files"].get("side_by_side")})
+psnrs = [v["psnr_covered"] for v in views if v["psnr_covered"] is not None]
+rej = g["rejected"]
+print(json.dumps({
+    "gaussians": g["kept"],
+    "median_reproj_px": g["median_reproj_px"],
+    "rejected_frac": rej["total"] / max(g["sampled"], 1),
+    "rejected": rej,
+    "sampled": g["sampled"],
+    "matches_imported": k["matches"],
+    "pairs_used": k["pairs"],
+    "heldout_psnr": sum(psnrs) / len(psnrs) if psnrs else None,
+    "heldout_coverage": sum(v["coverage"] for v in views) / len(views),
+    "heldout_views": views,
+}, indent=2, sort_keys=True))
+EOF
