@@ -1,1 +1,179 @@
-//! End-to-end tests of the `warp-graph` tool.
+//! End-to-end tests of the `warp-graph` tool: a tiny synthetic scene through `run` (with
+//! and without Gaussians for depth visibility), byte-identical output for 1 and 4 threads,
+//! and bad inputs that exit 1 naming the file and write nothing.
+
+use std::ffi::OsStr;
+use std::path::Path;
+use std::process::{Command, Output};
+
+use profuse_formats::{FileKind, Masks, Proposals};
+
+fn synth(dir: &Path, extra: &[&str]) {
+    let mut args: Vec<&OsStr> = vec![
+        "--preset".as_ref(),
+        "tiny".as_ref(),
+        "--seed".as_ref(),
+        "0".as_ref(),
+        "--out".as_ref(),
+        dir.as_os_str(),
+        "--quiet".as_ref(),
+    ];
+    args.extend(extra.iter().map(OsStr::new));
+    super::assert_succeeded(&super::run_tool(env!("CARGO_BIN_EXE_synth"), &args));
+}
+
+fn warp_graph(scene: &Path, out: &Path, extra: &[&str], threads: Option<&str>) -> Output {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_warp-graph"));
+    cmd.arg("run")
+        .arg("--masks")
+        .arg(scene.join("masks.safetensors"))
+        .arg("--matches")
+        .arg(scene.join("matches.safetensors"))
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .current_dir(super::root());
+    if let Some(t) = threads {
+        cmd.env("RAYON_NUM_THREADS", t);
+    }
+    cmd.output().unwrap()
+}
+
+#[test]
+fn run_on_a_tiny_synthetic_scene_writes_valid_proposals() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    synth(&scene, &["--gaussians", "3000"]);
+    let out = dir.path().join("proposals.safetensors");
+    let cams = scene.join("cameras.safetensors");
+    let gauss = scene.join("gt/gaussians.safetensors");
+    let geometry = [
+        "--cameras",
+        cams.to_str().unwrap(),
+        "--gaussians",
+        gauss.to_str().unwrap(),
+        "--quiet",
+    ];
+    let o = warp_graph(&scene, &out, &geometry, None);
+    super::assert_succeeded(&o);
+    let r = super::json(&o);
+    assert_eq!(r["views"], 4);
+    assert_eq!(r["pairs"], 12);
+    assert_eq!(r["view_pairs"], 6);
+    assert_eq!(r["visibility"], "both");
+    assert_eq!(r["sampling"], "bilinear");
+    assert!(r["edges_accepted"].as_u64().unwrap() >= 4, "{r}");
+    assert!(r["edges_tested"].as_u64() >= r["edges_accepted"].as_u64());
+    let cells = &r["cells"];
+    assert_eq!(
+        cells["total"].as_u64().unwrap(),
+        cells["low_certainty"].as_u64().unwrap()
+            + cells["occluded"].as_u64().unwrap()
+            + cells["gated"].as_u64().unwrap()
+    );
+    assert!(r["proposals"].as_u64().unwrap() >= 2, "{r}");
+    assert_eq!(r["out"], out.to_str().unwrap());
+    assert!(
+        o.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+
+    let masks = Masks::read(scene.join("masks.safetensors")).unwrap();
+    let p = Proposals::read(&out).unwrap();
+    p.check_against(&masks, "proposals").unwrap();
+    assert_eq!(p.len() as u64, r["proposals"].as_u64().unwrap());
+    assert_eq!(p.extra.get("visibility").map(String::as_str), Some("both"));
+    assert_eq!(p.extra.get("tau_iou").map(String::as_str), Some("0.2"));
+
+    // Same bytes with 1 and 4 threads; without Gaussians `auto` is fwd-bwd.
+    let one = dir.path().join("one.safetensors");
+    let four = dir.path().join("four.safetensors");
+    for (path, t) in [(&one, "1"), (&four, "4")] {
+        let o = warp_graph(&scene, path, &["--tau-alpha", "0.6", "--quiet"], Some(t));
+        super::assert_succeeded(&o);
+        assert_eq!(super::json(&o)["visibility"], "fwd-bwd");
+    }
+    assert_eq!(std::fs::read(&one).unwrap(), std::fs::read(&four).unwrap());
+    let p = Proposals::read(&one).unwrap();
+    assert_eq!(p.extra.get("tau_alpha").map(String::as_str), Some("0.6"));
+}
+
+#[test]
+fn bad_inputs_exit_1_name_the_file_and_write_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    synth(&scene, &[]);
+    let out = dir.path().join("proposals.safetensors");
+
+    // A truncated masks file.
+    let bad = dir.path().join("bad_masks.safetensors");
+    let bytes = std::fs::read(scene.join("masks.safetensors")).unwrap();
+    std::fs::write(&bad, &bytes[..bytes.len() / 2]).unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_warp-graph"))
+        .args(["run", "--quiet", "--masks"])
+        .arg(&bad)
+        .arg("--matches")
+        .arg(scene.join("matches.safetensors"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    assert!(o.stdout.is_empty());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("bad_masks.safetensors"), "{err}");
+    assert!(!out.exists());
+
+    // Matches of a 5-view scene against masks of 4 views.
+    let other = dir.path().join("other");
+    synth(&other, &["--views", "5"]);
+    let o = Command::new(env!("CARGO_BIN_EXE_warp-graph"))
+        .args(["run", "--masks"])
+        .arg(scene.join("masks.safetensors"))
+        .arg("--matches")
+        .arg(other.join("matches.safetensors"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("other/matches.safetensors") && err.contains("num_views` is 5"),
+        "{err}"
+    );
+    assert!(!out.exists());
+
+    // Depth visibility without Gaussians is refused before anything is written.
+    let o = warp_graph(&scene, &out, &["--visibility", "depth"], None);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--gaussians"));
+    assert!(!out.exists());
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 3);
+}
+
+#[test]
+fn bench_prints_throughput_and_memory() {
+    let o = super::run_tool(
+        env!("CARGO_BIN_EXE_warp-graph"),
+        &[
+            "bench".as_ref(),
+            "--width".as_ref(),
+            "120".as_ref(),
+            "--height".as_ref(),
+            "90".as_ref(),
+            "--views".as_ref(),
+            "3".as_ref(),
+            "--masks-per-view".as_ref(),
+            "10".as_ref(),
+            "--quiet".as_ref(),
+        ],
+    );
+    super::assert_succeeded(&o);
+    let r = super::json(&o);
+    assert_eq!(r["pairs"], 4);
+    assert!(r["pairs_per_s"].as_f64().unwrap() > 0.0);
+    assert!(r["peak_rss_mb"].as_f64().unwrap() > 0.0);
+    assert!(r["ari"].as_f64().unwrap() > 0.9, "{r}");
+}
