@@ -12,6 +12,8 @@ mod fuse;
 mod gs_init;
 #[path = "e2e/metrics.rs"]
 mod metrics;
+#[path = "e2e/pipeline.rs"]
+mod pipeline;
 #[path = "e2e/pq.rs"]
 mod pq;
 #[path = "e2e/query.rs"]

@@ -1,0 +1,77 @@
+//! Scores of a run against the scene's ground truth (synthetic scenes carry it under
+//! `gt/`): the figures `profuse demo --json` reports.
+
+use std::collections::BTreeMap;
+
+use profuse_formats::{FileKind, Gaussians, Proposals, VertexLabels};
+use profuse_metrics::scannet::ClassSet;
+use serde_json::{json, Value};
+
+use crate::error::{stage_err, Result};
+use crate::run::Paths;
+
+/// Every score the ground truth allows, as a JSON object with keys:
+/// `init_median_surface_dist_rel` and `init_surface` (gt/scene.json), `proposals_ari` and
+/// `proposals` (gt/mask_objects.json), `lerf_miou`, `lerf_acc25` and `lerf` (gt/label/),
+/// `scannet_miou19/15/10`, `scannet_macc19/15/10` (gt/mesh.safetensors labels).
+/// Keys whose ground truth or stage output is absent are left out.
+pub fn evaluate(p: &Paths) -> Result<BTreeMap<String, Value>> {
+    let mut s = BTreeMap::new();
+    let scene_json = p.gt.join("scene.json");
+    if scene_json.is_file() && p.gaussians.is_file() && p.suffix.is_empty() {
+        let scene = synth::Scene::from_json(&scene_json).map_err(stage_err("evaluate"))?;
+        let g = Gaussians::read(&p.gaussians).map_err(stage_err("evaluate"))?;
+        let d = profuse_metrics::surface::surface_distances(&g.means, &scene);
+        let sum =
+            profuse_metrics::surface::summarize(&d, profuse_metrics::surface::scene_extent(&scene));
+        s.insert("init_median_surface_dist_rel".into(), json!(sum.median_rel));
+        s.insert(
+            "init_surface".into(),
+            serde_json::to_value(&sum).unwrap_or(Value::Null),
+        );
+    }
+    let mask_objects = p.gt.join("mask_objects.json");
+    if mask_objects.is_file() && p.proposals.is_file() && p.suffix.is_empty() {
+        let truth = profuse_metrics::cluster::read_mask_objects(&mask_objects)
+            .map_err(stage_err("evaluate"))?;
+        let props = Proposals::read(&p.proposals).map_err(stage_err("evaluate"))?;
+        let c = profuse_metrics::cluster::proposal_scores(&props, &truth)
+            .map_err(stage_err("evaluate"))?;
+        s.insert("proposals_ari".into(), json!(c.ari));
+        s.insert(
+            "proposals".into(),
+            serde_json::to_value(&c).unwrap_or(Value::Null),
+        );
+    }
+    if let (Some(dir), true) = (p.labels(), p.query.is_dir()) {
+        let labels = profuse_metrics::lerf::read_label_dir(&dir).map_err(stage_err("evaluate"))?;
+        let src = profuse_metrics::lerf::PredDir {
+            dir: p.query.clone(),
+        };
+        let sc = profuse_metrics::lerf::evaluate_scene(&labels, &src, None)
+            .map_err(stage_err("evaluate"))?;
+        s.insert("lerf_miou".into(), json!(sc.miou));
+        s.insert("lerf_acc25".into(), json!(sc.acc25));
+        s.insert(
+            "lerf".into(),
+            json!({ "pairs": sc.pairs, "missing": sc.missing, "frames": sc.frames,
+                    "per_query": serde_json::to_value(&sc.per_query).unwrap_or(Value::Null) }),
+        );
+    }
+    if let (Some(mesh), true) = (p.mesh(), p.vertex_labels.is_file()) {
+        let truth =
+            profuse_metrics::scannet::read_ground_truth(&mesh).map_err(stage_err("evaluate"))?;
+        let pred = VertexLabels::read(&p.vertex_labels).map_err(stage_err("evaluate"))?;
+        for (name, set) in [
+            ("19", ClassSet::Nyu19),
+            ("15", ClassSet::Nyu15),
+            ("10", ClassSet::Nyu10),
+        ] {
+            let sc = profuse_metrics::scannet::evaluate(&pred.labels, &truth, set)
+                .map_err(stage_err("evaluate"))?;
+            s.insert(format!("scannet_miou{name}"), json!(sc.miou));
+            s.insert(format!("scannet_macc{name}"), json!(sc.macc));
+        }
+    }
+    Ok(s)
+}

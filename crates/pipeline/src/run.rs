@@ -1,0 +1,634 @@
+//! `profuse run`: every stage in order, each skipped when its completion record proves
+//! it up to date (see [`crate::stage`]).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use profuse_formats::{Cameras, Features, FileKind, Gaussians, Masks, Matches, Proposals};
+use serde::Serialize;
+use serde_json::{json, Value};
+
+use crate::config::Config;
+use crate::error::{io_err, stage_err, PipelineError, Result};
+use crate::stage::{clear_stamp, needs_run, write_stamp, Stamp};
+
+/// How to run.
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
+    /// Output directory (default `SCENE/out`).
+    pub out: Option<PathBuf>,
+    /// Redo every stage even when up to date.
+    pub force: bool,
+}
+
+/// Progress of a run, for a front end to display.
+#[derive(Debug, Clone)]
+pub enum Event<'a> {
+    /// A stage starts, and why it must run.
+    Start {
+        /// The stage.
+        stage: &'a str,
+        /// Why it runs.
+        reason: &'a str,
+    },
+    /// Work inside the running stage: `done` of `total` units.
+    Progress {
+        /// Units done.
+        done: u64,
+        /// Units in all.
+        total: u64,
+    },
+    /// A stage finished (ran or was up to date).
+    Done {
+        /// The stage.
+        stage: &'a str,
+        /// Whether it ran.
+        ran: bool,
+        /// Seconds it took (0 when up to date).
+        seconds: f64,
+    },
+}
+
+/// The paths of a scene directory (SPEC.md §6) and of one run's outputs.
+#[derive(Debug, Clone)]
+pub struct Paths {
+    /// The scene directory.
+    pub scene: PathBuf,
+    /// The output directory.
+    pub out: PathBuf,
+    /// `cameras.safetensors`.
+    pub cameras: PathBuf,
+    /// Dense `matches.safetensors`, or sparse `sparse_matches.safetensors` when only that exists.
+    pub matches: PathBuf,
+    /// Whether `matches` is the sparse kind.
+    pub sparse: bool,
+    /// `masks.safetensors`.
+    pub masks: PathBuf,
+    /// `prompts.safetensors`.
+    pub prompts: PathBuf,
+    /// `out/gaussians.safetensors`.
+    pub gaussians: PathBuf,
+    /// `out/proposals.safetensors`.
+    pub proposals: PathBuf,
+    /// `out/features[_baseline].safetensors`.
+    pub features: PathBuf,
+    /// `out/pq[_baseline].safetensors`.
+    pub pq: PathBuf,
+    /// `out/query[_baseline]/`.
+    pub query: PathBuf,
+    /// `out/vertex_labels[_baseline].safetensors`.
+    pub vertex_labels: PathBuf,
+    /// `gt/` (synthetic scenes).
+    pub gt: PathBuf,
+    /// Suffix of the variant's outputs (`_baseline` for `fuse.no_proposals`).
+    pub suffix: &'static str,
+}
+
+impl Paths {
+    /// The paths for a scene, an output directory and a variant.
+    pub fn new(scene: &Path, out: &Path, baseline: bool) -> Paths {
+        let suffix = if baseline { "_baseline" } else { "" };
+        let dense = scene.join("matches.safetensors");
+        let sparse_path = scene.join("sparse_matches.safetensors");
+        let sparse = !dense.is_file() && sparse_path.is_file();
+        Paths {
+            scene: scene.to_path_buf(),
+            out: out.to_path_buf(),
+            cameras: scene.join("cameras.safetensors"),
+            matches: if sparse { sparse_path } else { dense },
+            sparse,
+            masks: scene.join("masks.safetensors"),
+            prompts: scene.join("prompts.safetensors"),
+            gaussians: out.join("gaussians.safetensors"),
+            proposals: out.join("proposals.safetensors"),
+            features: out.join(format!("features{suffix}.safetensors")),
+            pq: out.join(format!("pq{suffix}.safetensors")),
+            query: out.join(format!("query{suffix}")),
+            vertex_labels: out.join(format!("vertex_labels{suffix}.safetensors")),
+            gt: scene.join("gt"),
+            suffix,
+        }
+    }
+
+    /// LERF-style label files (`gt/label/`), when the scene has them.
+    pub fn labels(&self) -> Option<PathBuf> {
+        let p = self.gt.join("label");
+        p.is_dir().then_some(p)
+    }
+
+    /// The labelled mesh (`gt/mesh.safetensors`), when the scene has one.
+    pub fn mesh(&self) -> Option<PathBuf> {
+        let p = self.gt.join("mesh.safetensors");
+        p.is_file().then_some(p)
+    }
+}
+
+/// One stage's line of the summary.
+#[derive(Debug, Clone, Serialize)]
+pub struct StageLine {
+    /// The stage.
+    pub stage: String,
+    /// Whether it ran in this invocation.
+    pub ran: bool,
+    /// Why it ran, or `up to date`.
+    pub reason: String,
+    /// Seconds it took in this invocation, or when it last ran (up to date).
+    pub seconds: f64,
+    /// The stage's report (counts), when it ran.
+    pub report: Value,
+}
+
+/// What a run did.
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    /// The scene directory.
+    pub scene: PathBuf,
+    /// The output directory.
+    pub out: PathBuf,
+    /// Each stage in order.
+    pub stages: Vec<StageLine>,
+    /// The paper's Table 4 grouping: geometry (gs-init), semantics (warp-graph + fuse),
+    /// indexing (pq), total (the three), plus evaluation (query, vertex-transfer) and the
+    /// per-stage seconds.
+    pub timing_s: BTreeMap<String, f64>,
+}
+
+fn check_input(stage: &'static str, path: &Path, expected: &'static str) -> Result<()> {
+    if path.is_file() {
+        Ok(())
+    } else {
+        Err(PipelineError::MissingInput {
+            stage,
+            path: path.display().to_string(),
+            expected,
+        })
+    }
+}
+
+/// Where and how stages run.
+struct Runner<'a> {
+    out: &'a Path,
+    force: bool,
+    events: &'a (dyn Fn(Event<'_>) + Sync),
+}
+
+/// Runs one stage unless up to date: clears its record, runs `body`, writes the record.
+fn stage(
+    r: &Runner<'_>,
+    name: &str,
+    params: Value,
+    inputs: Vec<PathBuf>,
+    outputs: Vec<PathBuf>,
+    body: impl FnOnce() -> Result<Value>,
+) -> Result<StageLine> {
+    let (out, force, events) = (r.out, r.force, r.events);
+    let reason = if force {
+        Some("--force".to_string())
+    } else {
+        needs_run(out, name, &params, &inputs, &outputs)
+    };
+    let Some(reason) = reason else {
+        let seconds = std::fs::read(crate::stage::stamp_path(out, name))
+            .ok()
+            .and_then(|b| serde_json::from_slice::<Stamp>(&b).ok())
+            .map_or(0.0, |s| s.seconds);
+        events(Event::Done {
+            stage: name,
+            ran: false,
+            seconds: 0.0,
+        });
+        return Ok(StageLine {
+            stage: name.into(),
+            ran: false,
+            reason: "up to date".into(),
+            seconds,
+            report: Value::Null,
+        });
+    };
+    clear_stamp(out, name).map_err(io_err(out, "cannot remove a completion record"))?;
+    events(Event::Start {
+        stage: name,
+        reason: &reason,
+    });
+    let t0 = Instant::now();
+    let report = body()?;
+    let seconds = t0.elapsed().as_secs_f64();
+    let stamp = Stamp {
+        stage: name.into(),
+        params,
+        inputs,
+        outputs,
+        seconds,
+    };
+    write_stamp(out, &stamp).map_err(io_err(out, "cannot write a completion record"))?;
+    events(Event::Done {
+        stage: name,
+        ran: true,
+        seconds,
+    });
+    Ok(StageLine {
+        stage: name.into(),
+        ran: true,
+        reason,
+        seconds,
+        report,
+    })
+}
+
+fn to_json(v: &impl Serialize) -> Value {
+    serde_json::to_value(v).unwrap_or(Value::Null)
+}
+
+/// Runs the pipeline on a scene directory: gs-init, warp-graph (skipped for the
+/// `fuse.no_proposals` baseline), fuse, pq, query and, when the scene has a labelled mesh,
+/// vertex-transfer. Writes `config.toml` (the effective configuration) into the output
+/// directory first.
+pub fn run(
+    scene: &Path,
+    config: &Config,
+    opts: &RunOptions,
+    events: &(dyn Fn(Event<'_>) + Sync),
+) -> Result<Summary> {
+    config.validate()?;
+    let out = opts.out.clone().unwrap_or_else(|| scene.join("out"));
+    let p = Paths::new(scene, &out, config.fuse.no_proposals);
+    check_input("gs-init", &p.cameras, "cameras file")?;
+    check_input(
+        "gs-init",
+        &p.matches,
+        "matches.safetensors or sparse_matches.safetensors",
+    )?;
+    check_input("warp-graph", &p.masks, "masks file")?;
+    check_input("query", &p.prompts, "prompts file")?;
+    std::fs::create_dir_all(&out).map_err(io_err(&out, "cannot create the output directory"))?;
+    write_text(
+        &out.join(format!("config{}.toml", p.suffix)),
+        &config.to_toml(),
+    )?;
+
+    let runner = Runner {
+        out: &out,
+        force: opts.force,
+        events,
+    };
+    let mut lines = Vec::new();
+    let progress = |done: usize, total: usize| {
+        events(Event::Progress {
+            done: done as u64,
+            total: total as u64,
+        })
+    };
+
+    // gs-init: cameras + images + matches -> gaussians.
+    let images = image_paths(&p)?;
+    let mut inputs = vec![p.cameras.clone(), p.matches.clone()];
+    inputs.extend(images);
+    lines.push(stage(
+        &runner,
+        "gs-init",
+        to_json(&config.gs_init),
+        inputs,
+        vec![p.gaussians.clone()],
+        || {
+            let params = config.gs_init.params()?;
+            let match_file = if p.sparse {
+                gs_init::MatchFile::Sparse(p.matches.clone())
+            } else {
+                gs_init::MatchFile::Dense(p.matches.clone())
+            };
+            let inputs = gs_init::Inputs {
+                cameras: p.cameras.clone(),
+                images: p.scene.clone(),
+                matches: match_file,
+            };
+            let (g, report) = gs_init::initialise_files(&inputs, &params, &progress)
+                .map_err(stage_err("gs-init"))?;
+            g.write(&p.gaussians).map_err(stage_err("gs-init"))?;
+            Ok(to_json(&report))
+        },
+    )?);
+
+    // warp-graph: masks + matches (+ cameras, gaussians for visibility) -> proposals.
+    if !config.fuse.no_proposals {
+        if p.sparse {
+            return Err(PipelineError::MissingInput {
+                stage: "warp-graph",
+                path: p.scene.join("matches.safetensors").display().to_string(),
+                expected: "dense matches (warp-graph warps mask label maps; sparse matches cannot)",
+            });
+        }
+        lines.push(stage(
+            &runner,
+            "warp-graph",
+            to_json(&config.warp_graph),
+            vec![
+                p.masks.clone(),
+                p.matches.clone(),
+                p.cameras.clone(),
+                p.gaussians.clone(),
+            ],
+            vec![p.proposals.clone()],
+            || {
+                let params = config.warp_graph.params()?;
+                let err = stage_err::<profuse_formats::FormatError>("warp-graph");
+                let masks = Masks::read(&p.masks).map_err(err)?;
+                let matches = Matches::read(&p.matches).map_err(stage_err("warp-graph"))?;
+                let cameras = Cameras::read(&p.cameras).map_err(stage_err("warp-graph"))?;
+                let gaussians = Gaussians::read(&p.gaussians).map_err(stage_err("warp-graph"))?;
+                let inputs = warp_graph::Inputs::new(&masks, &matches)
+                    .with_cameras(&cameras)
+                    .with_gaussians(&gaussians);
+                let outcome = warp_graph::build_proposals(inputs, &params)
+                    .map_err(stage_err("warp-graph"))?;
+                outcome
+                    .proposals
+                    .write(&p.proposals)
+                    .map_err(stage_err("warp-graph"))?;
+                Ok(to_json(&outcome.report))
+            },
+        )?);
+    }
+
+    // fuse: gaussians + cameras + masks (+ proposals) -> features.
+    let fuse_name = if config.fuse.no_proposals {
+        "fuse_baseline"
+    } else {
+        "fuse"
+    };
+    let mut fuse_inputs = vec![p.gaussians.clone(), p.cameras.clone(), p.masks.clone()];
+    if !config.fuse.no_proposals {
+        fuse_inputs.push(p.proposals.clone());
+    }
+    lines.push(stage(
+        &runner,
+        fuse_name,
+        to_json(&config.fuse),
+        fuse_inputs,
+        vec![p.features.clone()],
+        || {
+            let err = |e: profuse_formats::FormatError| stage_err("fuse")(e);
+            let gaussians = Gaussians::read(&p.gaussians).map_err(err)?;
+            let cameras = Cameras::read(&p.cameras).map_err(err)?;
+            let masks = Masks::read(&p.masks).map_err(err)?;
+            let groups = if config.fuse.no_proposals {
+                profuse_fuse::Groups::per_mask(&masks)
+            } else {
+                let proposals = Proposals::read(&p.proposals).map_err(err)?;
+                let orphans = profuse_fuse::Orphans::parse(&config.fuse.orphans)
+                    .unwrap_or(profuse_fuse::Orphans::Ignore);
+                profuse_fuse::Groups::from_proposals(
+                    &masks,
+                    &proposals,
+                    orphans,
+                    &p.proposals.display().to_string(),
+                )
+                .map_err(stage_err("fuse"))?
+            };
+            let names = profuse_fuse::Names {
+                gaussians: p.gaussians.display().to_string(),
+                cameras: p.cameras.display().to_string(),
+                masks: p.masks.display().to_string(),
+            };
+            let scene = profuse_fuse::Scene::new(&gaussians, &cameras, &masks).named(names);
+            let views = cameras.len();
+            let partial =
+                profuse_fuse::accumulate(&scene, &groups, config.fuse.k, 0..views, &mut |r| {
+                    progress(r.view + 1, views)
+                })
+                .map_err(stage_err("fuse"))?;
+            let precision = profuse_fuse::Precision::of(&masks.features);
+            let reg = profuse_fuse::finish(&partial, precision);
+            reg.features.write(&p.features).map_err(stage_err("fuse"))?;
+            let s = &reg.summary;
+            Ok(json!({
+                "gaussians": s.gaussians, "valid": s.valid, "nnz": s.nnz, "groups": s.groups,
+                "views": s.views, "masks": s.masks, "assigned_masks": s.assigned_masks,
+                "masks_with_mass": s.masks_with_mass, "pixels": s.pixels, "hits": s.hits,
+            }))
+        },
+    )?);
+
+    // pq: features -> pq.
+    lines.push(stage(
+        &runner,
+        &format!("pq{}", p.suffix),
+        to_json(&config.pq),
+        vec![p.features.clone()],
+        vec![p.pq.clone()],
+        || {
+            let features = Features::read(&p.features).map_err(stage_err("pq"))?;
+            let params = config.pq.params();
+            let codebook = profuse_pq::train(&features, &params).map_err(stage_err("pq"))?;
+            let pq = codebook
+                .encode_features(&features)
+                .map_err(stage_err("pq"))?;
+            pq.write(&p.pq).map_err(stage_err("pq"))?;
+            Ok(json!({
+                "m": params.m,
+                "vectors": pq.valid.len(),
+                "reconstruction_cosine": profuse_pq::reconstruction_cosine(&features, &pq),
+            }))
+        },
+    )?);
+
+    // query: gaussians + cameras + pq + prompts -> masks per (view, prompt) + selections.
+    let prompts = query_prompts(config, &p)?;
+    let mut query_inputs = vec![
+        p.gaussians.clone(),
+        p.cameras.clone(),
+        p.pq.clone(),
+        p.prompts.clone(),
+    ];
+    if let Some(l) = p.labels() {
+        query_inputs.push(l);
+    }
+    lines.push(stage(
+        &runner,
+        &format!("query{}", p.suffix),
+        json!({ "query": to_json(&config.query), "prompts": prompts }),
+        query_inputs,
+        vec![p.query.clone()],
+        || run_query(config, &p, &prompts, &progress),
+    )?);
+
+    // vertex-transfer: when the scene has a labelled mesh (synthetic ground truth).
+    if let Some(mesh) = p.mesh() {
+        lines.push(stage(
+            &runner,
+            &format!("vertex-transfer{}", p.suffix),
+            to_json(&config.vertex_transfer),
+            vec![
+                p.gaussians.clone(),
+                p.pq.clone(),
+                p.prompts.clone(),
+                mesh.clone(),
+            ],
+            vec![p.vertex_labels.clone()],
+            || {
+                let job = vertex_transfer::Job {
+                    gaussians: p.gaussians.clone(),
+                    descriptors: vertex_transfer::DescriptorFile::Pq(p.pq.clone()),
+                    prompts: p.prompts.clone(),
+                    classes: None,
+                    mesh: mesh.clone(),
+                    out: p.vertex_labels.clone(),
+                    // The same stamp as the vertex-transfer tool, so the bytes agree.
+                    generator: Some(format!("vertex-transfer {} run", env!("CARGO_PKG_VERSION"))),
+                };
+                let report = vertex_transfer::run_job(&job, &config.vertex_transfer.params())
+                    .map_err(stage_err("vertex-transfer"))?;
+                Ok(to_json(&report))
+            },
+        )?);
+    }
+
+    let timing_s = timing(&lines);
+    Ok(Summary {
+        scene: scene.to_path_buf(),
+        out,
+        stages: lines,
+        timing_s,
+    })
+}
+
+/// The paper's Table 4 grouping of stage seconds.
+fn timing(lines: &[StageLine]) -> BTreeMap<String, f64> {
+    let sec = |names: &[&str]| -> f64 {
+        lines
+            .iter()
+            .filter(|l| {
+                names
+                    .iter()
+                    .any(|n| l.stage == *n || l.stage == format!("{n}_baseline"))
+            })
+            .map(|l| l.seconds)
+            .sum()
+    };
+    let geometry = sec(&["gs-init"]);
+    let semantics = sec(&["warp-graph", "fuse"]);
+    let indexing = sec(&["pq"]);
+    let mut t = BTreeMap::new();
+    t.insert("geometry".into(), geometry);
+    t.insert("semantics".into(), semantics);
+    t.insert("indexing".into(), indexing);
+    t.insert("total".into(), geometry + semantics + indexing);
+    t.insert("evaluation".into(), sec(&["query", "vertex-transfer"]));
+    for l in lines {
+        t.insert(l.stage.clone(), l.seconds);
+    }
+    t
+}
+
+/// Every image of the cameras file (gs-init reads reference views' images).
+fn image_paths(p: &Paths) -> Result<Vec<PathBuf>> {
+    let cams = Cameras::read(&p.cameras).map_err(stage_err("gs-init"))?;
+    Ok(cams.image_names.iter().map(|n| p.scene.join(n)).collect())
+}
+
+/// The prompts to query: the configured ones, else the categories of the LERF label files
+/// that the prompts file has, else every class prompt.
+fn query_prompts(config: &Config, p: &Paths) -> Result<Vec<String>> {
+    if !config.query.prompts.is_empty() {
+        return Ok(config.query.prompts.clone());
+    }
+    let prompts = profuse_formats::Prompts::read(&p.prompts).map_err(stage_err("query"))?;
+    if let Some(dir) = p.labels() {
+        let scene = profuse_metrics::lerf::read_label_dir(&dir).map_err(stage_err("query"))?;
+        let mut cats: Vec<String> = scene
+            .frames
+            .iter()
+            .flat_map(|f| f.objects.iter().map(|o| o.category.clone()))
+            .filter(|c| prompts.names.contains(c))
+            .collect();
+        cats.sort();
+        cats.dedup();
+        return Ok(cats);
+    }
+    Ok(match &prompts.class_ids {
+        Some(ids) => prompts
+            .names
+            .iter()
+            .zip(ids.iter())
+            .filter(|(_, id)| **id >= 0)
+            .map(|(n, _)| n.clone())
+            .collect(),
+        None => prompts
+            .names
+            .iter()
+            .filter(|n| !profuse_query::CANONICAL_NEGATIVES.contains(&n.as_str()))
+            .cloned()
+            .collect(),
+    })
+}
+
+/// The query stage: the LERF layout over the labelled frames when the scene has labels,
+/// else the per-prompt layout over every view; written to a temporary directory renamed
+/// into place at the end, so an interrupted query leaves no partial folder behind.
+fn run_query(
+    config: &Config,
+    p: &Paths,
+    prompts: &[String],
+    progress: &dyn Fn(usize, usize),
+) -> Result<Value> {
+    let q = &config.query;
+    let inputs = profuse_query::Inputs::load(
+        &p.gaussians,
+        &p.cameras,
+        &profuse_query::DescriptorPath::Pq(p.pq.clone()),
+        &p.prompts,
+    )
+    .map_err(stage_err("query"))?;
+    let score = if q.score == "cosine" {
+        profuse_query::ScoreKind::Cosine
+    } else {
+        profuse_query::ScoreKind::Relevancy
+    };
+    let (views, layout) = match p.labels() {
+        Some(dir) => (
+            profuse_query::ViewSelection::FromLabels(dir),
+            profuse_query::Layout::Lerf,
+        ),
+        None => (
+            profuse_query::ViewSelection::All,
+            profuse_query::Layout::Prompt,
+        ),
+    };
+    let options = profuse_query::QueryOptions {
+        prompts: profuse_query::PromptSelection::Names(prompts.to_vec()),
+        score,
+        rule: Some(profuse_query::Rule::Threshold(q.threshold)),
+        gamma: q.gamma,
+        k: q.k,
+        scale: None,
+        views,
+        layout,
+        overlay: q.overlay,
+    };
+    let plan = inputs.plan(&options).map_err(stage_err("query"))?;
+    let tmp = p.out.join(format!(".query{}.tmp", p.suffix));
+    remove_dir(&tmp)?;
+    let report = plan
+        .run(&inputs.gaussians, &tmp, &mut |d, t| progress(d, t))
+        .map_err(stage_err("query"))?;
+    remove_dir(&p.query)?;
+    std::fs::rename(&tmp, &p.query)
+        .map_err(io_err(&p.query, "cannot move the query results into place"))?;
+    Ok(to_json(&report))
+}
+
+fn remove_dir(dir: &Path) -> Result<()> {
+    match std::fs::remove_dir_all(dir) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            Err(io_err(dir, "cannot remove an old directory")(e))
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Writes a text file atomically.
+pub(crate) fn write_text(path: &Path, text: &str) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, text).map_err(io_err(path, "cannot write"))?;
+    std::fs::rename(&tmp, path).map_err(io_err(path, "cannot rename into place"))
+}
