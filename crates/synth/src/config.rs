@@ -38,6 +38,11 @@ pub struct FaultModel {
     pub wrong_class_beta: [f64; 2],
     /// Scale of the noise of a class prompt embedding: normalize(p_c + text_noise · g).
     pub text_noise: f64,
+    /// CLIP's embedding of a small crop is less reliable than of a large one: a mask of
+    /// `a` pixels gets `feature_noise · sqrt(max(1, crop_noise_px / a))` instead of
+    /// `feature_noise` (0 = off, every mask the same noise).
+    #[serde(default)]
+    pub crop_noise_px: f64,
 }
 
 impl Default for FaultModel {
@@ -54,6 +59,7 @@ impl Default for FaultModel {
             p_wrong_class: 0.05,
             wrong_class_beta: [0.3, 0.7],
             text_noise: 0.25,
+            crop_noise_px: 0.0,
         }
     }
 }
@@ -89,6 +95,12 @@ impl FaultModel {
             self.feature_noise,
             (0.0..=100.0).contains(&self.feature_noise),
             "a value in [0, 100]",
+        )?;
+        check(
+            "crop_noise_px",
+            self.crop_noise_px,
+            self.crop_noise_px.is_finite() && self.crop_noise_px >= 0.0,
+            "a finite value >= 0",
         )?;
         check(
             "text_noise",

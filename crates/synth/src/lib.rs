@@ -41,7 +41,9 @@
 //! feature is `normalize(mix + feature_noise · g)`, `g ~ N(0, I/D)`, where `mix` is the
 //! area-weighted mean of the prototypes of the object regions that formed it (one class
 //! unless merged); with `p_wrong_class` it is first pulled toward another class,
-//! `(1 − β)·mix + β·p_other`, `β` uniform in `wrong_class_beta`. Prompts are
+//! `(1 − β)·mix + β·p_other`, `β` uniform in `wrong_class_beta`; with `crop_noise_px`
+//! the noise of a mask of `a` pixels grows by `sqrt(max(1, crop_noise_px / a))` (small
+//! crops embed less reliably; off by default). Prompts are
 //! `normalize(p_c + text_noise · g)`: near, not at, their class. `gt/mask_objects.json`
 //! records each mask's dominant object and purity; `gt/scene.json` the per-view counts of
 //! every fault.

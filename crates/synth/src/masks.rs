@@ -491,7 +491,9 @@ fn mask_feature(
         }
     }
     let mut rng = Rng::new(&[seed, tag::FEATURE, view, key[0], key[1]]);
-    let f = noisy(f, fm.feature_noise, &mut rng);
+    let area = composition.values().sum::<u64>().max(1) as f64;
+    let crop = (fm.crop_noise_px / area).max(1.0).sqrt();
+    let f = noisy(f, fm.feature_noise * crop, &mut rng);
     let f = if f.iter().all(|x| *x == 0.0) {
         protos
             .of_class(dominant.0)

@@ -812,3 +812,59 @@ fn bad_parameters_are_named() {
     let e = Scene::from_json_str("{\"room\": {\"size\": [1, 1, 1], \"slab_thickness\": 0.1}, \"objects\": [{\"index\": 0, \"name\": \"x\", \"class_id\": 3, \"class_name\": \"cabinet\", \"room\": false, \"shape\": {\"kind\": \"ball\", \"radius\": -1}, \"translation\": [0, 0, 0], \"yaw\": 0, \"color\": [1, 2, 3], \"texture\": {\"kind\": \"plain\"}}]}").unwrap_err();
     assert!(e.to_string().contains("dimensions"), "{e}");
 }
+
+#[test]
+fn crop_noise_makes_small_masks_noisier_than_large_ones() {
+    // With crop noise, a mask of a pixels gets noise feature_noise · sqrt(crop / a): the
+    // cosine to the own class prototype falls for small masks and not for large ones.
+    let mean_cos = |crop: f64| -> (f64, f64) {
+        let mut c = small(3);
+        c.faults = FaultModel {
+            feature_noise: 0.5,
+            p_wrong_class: 0.0,
+            crop_noise_px: crop,
+            ..FaultModel::exact()
+        };
+        let (dir, _) = gen(&c);
+        let masks = Masks::read(dir.path().join("masks.safetensors")).unwrap();
+        let gt: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(dir.path().join("gt/mask_objects.json")).unwrap(),
+        )
+        .unwrap();
+        let scene = Scene::from_json(dir.path().join("gt/scene.json")).unwrap();
+        let (mut small_sum, mut small_n, mut big_sum, mut big_n) = (0.0, 0, 0.0, 0);
+        for (m, e) in gt["masks"].as_array().unwrap().iter().enumerate() {
+            let (Some(px), Some(cls)) = (e["pixels"].as_u64(), e["feature_class"].as_u64()) else {
+                continue;
+            };
+            let Some(cname) = scene
+                .objects
+                .iter()
+                .find(|o| u64::from(o.class_id) == cls)
+                .map(|o| o.class_name.clone())
+            else {
+                continue;
+            };
+            let p = prototype(3, 64, &cname);
+            let f: Vec<f64> = (0..64)
+                .map(|k| f64::from(masks.features.get(m * 64 + k)))
+                .collect();
+            let cos = dot(&f, &p);
+            if px < 400 {
+                small_sum += cos;
+                small_n += 1;
+            } else if px > 3000 {
+                big_sum += cos;
+                big_n += 1;
+            }
+        }
+        assert!(small_n > 3 && big_n > 3, "{small_n} {big_n}");
+        (small_sum / f64::from(small_n), big_sum / f64::from(big_n))
+    };
+    let (small_off, big_off) = mean_cos(0.0);
+    let (small_on, big_on) = mean_cos(6000.0);
+    // Without crop noise size does not matter; with it small crops lose most of their signal.
+    assert!((small_off - big_off).abs() < 0.1, "{small_off} {big_off}");
+    assert!(small_on < small_off - 0.2, "{small_on} vs {small_off}");
+    assert!((big_on - big_off).abs() < 0.1, "{big_on} vs {big_off}");
+}

@@ -139,6 +139,10 @@ struct Cli {
     /// Probability that a mask feature is pulled toward another class.
     #[arg(long, help_heading = "Masks")]
     p_wrong_class: Option<f64>,
+    /// Masks smaller than this many pixels get feature noise scaled by sqrt(this / area)
+    /// (small crops embed less reliably; 0 = off).
+    #[arg(long, help_heading = "Masks")]
+    crop_noise_px: Option<f64>,
     /// Range LO,HI of the pull β of a wrong-class feature.
     #[arg(
         long,
@@ -248,6 +252,7 @@ fn config_from(cli: &Cli) -> Result<Config, BoxError> {
         p_unassigned,
         feature_noise,
         p_wrong_class,
+        crop_noise_px,
         text_noise
     );
     if let Some(b) = &cli.wrong_class_beta {
