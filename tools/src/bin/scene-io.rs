@@ -181,6 +181,10 @@ enum Command {
         /// The output scene directory.
         #[arg(long)]
         out_dir: PathBuf,
+        /// Write only OUT_DIR/cameras.safetensors (pinhole, image names unchanged): for
+        /// images undistorted elsewhere, or stages that need no pixels.
+        #[arg(long)]
+        cameras_only: bool,
     },
 }
 
@@ -348,9 +352,15 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             cameras,
             scene_dir,
             out_dir,
+            cameras_only,
         } => {
             let cams = Cameras::read(&cameras)?;
-            let (mut pinhole, report) = undistort_scene(&cams, &scene_dir, &out_dir)?;
+            let (mut pinhole, report) = if cameras_only {
+                std::fs::create_dir_all(&out_dir)?;
+                (scene_io::undistort::pinhole(&cams), Default::default())
+            } else {
+                undistort_scene(&cams, &scene_dir, &out_dir)?
+            };
             stamp(&mut pinhole.extra, "undistort");
             let out = out_dir.join("cameras.safetensors");
             pinhole.write(&out)?;
