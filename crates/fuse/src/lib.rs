@@ -1,1 +1,404 @@
-//! Training-free registration of proposal descriptors onto Gaussians via top-K ray weights (paper 3.3)
+//! Training-free registration of language descriptors onto 3D Gaussians (ProFuse paper
+//! §3.3): every Gaussian gets the visibility-weighted average of the descriptors of the 3D
+//! Context Proposals whose pixels it is rendered into, from the rasterizer's per-pixel
+//! top-K weights ω = T·α alone — no gradient, no render supervision.
+//!
+//! # What it computes
+//!
+//! For view i, pixel p and its top-K hits (g, ω) (from `splat-raster`):
+//!
+//! * mask mass μ(M) = Σ_{p ∈ M} Σ_t ω (eq. mask-mass);
+//! * proposal descriptor f̄_P = normalise(Σ_{M ∈ P} μ(M) f_M) over the member masks of
+//!   every view (eq. proposal-desc);
+//! * A\[g\] += ω f̄_{L(p)}, S\[g\] += ω for every pixel whose mask has a proposal and every
+//!   top-K hit (eq. accumulate); f_g = normalise(A / max(S, ε)) (eq. gaussian-feature);
+//!   a Gaussian with S = 0 is invalid (zero row, `valid` 0).
+//!
+//! # Design decisions
+//!
+//! * **One pass, D-dimensional work per pair, not per hit.** Grouping the hits of
+//!   eq. accumulate by proposal, A\[g\] = Σ_P W\[g, P\] f̄_P with W\[g, P\] = Σ ω over the hits of
+//!   g in P's pixels. W does not depend on the descriptors, so the mask masses and W come
+//!   from the *same* rendering pass over the views; the descriptors are formed after the
+//!   pass, and A is one sparse-dense product W F. The per-hit work is one scalar add into
+//!   a sparse Gaussian x proposal matrix (a handful of proposals per Gaussian); the
+//!   D-dimensional work is per nonzero (Gaussian, proposal) pair. Dr. Splat's dense
+//!   [Gaussians x masks] matrix is what this avoids.
+//! * **Exact sums.** Weights are added as integers in units of 2^-62 ([`WEIGHT_SCALE`]);
+//!   every weight the rasterizer produces (>= 1/255 · 1e-4) converts exactly, so W and μ are
+//!   the exact sums of the rendered f32 weights whatever the order of views, pixels or
+//!   threads. That is what makes view sharding free: partial sums of any view split, added
+//!   in any order ([`merge`]), give the same integers as one pass, and [`finish`] the same
+//!   bytes. After the pass everything is f64, each row summed in ascending proposal order.
+//! * **Streaming, memory independent of the number of views.** Views are rendered one at
+//!   a time into one reused `ViewRender` (K × 8 bytes per mask-grid pixel). The accumulator
+//!   holds 4 bytes per Gaussian, 24 per nonzero (Gaussian, proposal) pair and 16 per mask,
+//!   plus one view's scratch; nothing per view or per pixel accumulates.
+//! * **Cache-friendly scatter.** Gaussian ids are arbitrary with respect to the screen, so
+//!   adding hits straight into W would miss the cache on nearly every Gaussian's first touch
+//!   in a view. Instead each 16x16 tile first sums its hits per (Gaussian, proposal) in a
+//!   small table (neighbouring pixels share most of their top-K), the tile records are
+//!   counting-sorted by block of 4096 Gaussians, and each block of W adds its records while
+//!   its entries sit in cache. Tiles and blocks run in parallel; no locks.
+//! * **Mask grid.** Views are rendered at the masks' grid (SPEC.md §4.3): when it differs
+//!   from the image size the intrinsics are scaled by (W / image_w, H / image_h), so grid
+//!   pixel (x, y) samples the ray through the centre of the image region it covers.
+//!   Weights are then per grid cell; when all views share an image size that is a uniform
+//!   factor that cancels in every normalisation.
+//! * **Orphan masks** (no proposal, e.g. filtered by `s_min` / `v_min`) register nothing
+//!   by default, as in the paper; [`Orphans::Singleton`] makes each its own proposal.
+//! * **Baseline.** [`Groups::per_mask`] registers every mask's own feature (Dr. Splat
+//!   style, no proposals, no mass weighting), so the paper's claim can be measured.
+//! * **Views without masks** are not rendered (they cannot contribute).
+//!
+//! # Example
+//!
+//! ```
+//! use profuse_formats::{Cameras, FileKind, Gaussians, Masks};
+//! use profuse_fuse::{accumulate, finish, fuse, merge, FuseOptions, Groups, Orphans, Scene};
+//!
+//! // A tiny synthetic scene with ground-truth Gaussians; proposals from its ground truth
+//! // (in the pipeline they come from warp-graph).
+//! let dir = tempfile::tempdir()?;
+//! let mut config = synth::Config::preset(synth::Preset::Tiny, 1);
+//! config.gaussians = 2000;
+//! synth::generate(&config, dir.path())?;
+//! let gaussians = Gaussians::read(dir.path().join("gt/gaussians.safetensors"))?;
+//! let cameras = Cameras::read(dir.path().join("cameras.safetensors"))?;
+//! let masks = Masks::read(dir.path().join("masks.safetensors"))?;
+//! let proposals = profuse_fuse::testing::proposals_from_mask_objects(
+//!     dir.path().join("gt/mask_objects.json"), &masks, 1)?;
+//! let groups = Groups::from_proposals(&masks, &proposals, Orphans::Ignore, "proposals")?;
+//!
+//! let scene = Scene::new(&gaussians, &cameras, &masks);
+//! let registration = fuse(&scene, &groups, &FuseOptions::default())?;
+//! assert!(registration.summary.valid > 1000);
+//! assert_eq!(registration.features.len(), gaussians.len());
+//!
+//! // Two view shards, merged: the same bytes as the single pass.
+//! let a = accumulate(&scene, &groups, 10, 0..2, &mut |_| {})?;
+//! let b = accumulate(&scene, &groups, 10, 2..4, &mut |_| {})?;
+//! let merged = merge(&[b, a], &[])?;
+//! let precision = profuse_fuse::Precision::of(&masks.features);
+//! assert_eq!(finish(&merged, precision).features, registration.features);
+//! # Ok::<(), Box<dyn std::error::Error + Send + Sync>>(())
+//! ```
+
+mod accumulate;
+mod error;
+mod finish;
+mod groups;
+mod partial;
+#[doc(hidden)]
+pub mod testing;
+
+use std::ops::Range;
+use std::time::Instant;
+
+use profuse_formats::{Cameras, Gaussians, Labels, Masks};
+use splat_raster::{Rasterizer, RenderOptions, RenderStats, ViewCamera, ViewRender};
+
+pub use accumulate::{dequantise, quantise, HitCounts, WeightMatrix, WEIGHT_SCALE};
+pub use error::{FuseError, Result};
+pub use finish::{finish, group_descriptors, Precision, Registration, Summary, EPS};
+pub use groups::{Grouping, Groups, Orphans, NO_GROUP};
+pub use partial::{merge, PartialSums, Timings, PARTIAL_FORMAT, PARTIAL_VERSION};
+
+use accumulate::{Accumulator, LabelPlane, ViewHits};
+
+/// Top-K of the paper (K = 10 saturates with proposals, Table topk_miou).
+pub const DEFAULT_K: usize = 10;
+
+/// How the inputs are named in errors (file paths in the tools).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Names {
+    /// The Gaussians.
+    pub gaussians: String,
+    /// The cameras.
+    pub cameras: String,
+    /// The masks.
+    pub masks: String,
+}
+
+impl Default for Names {
+    fn default() -> Self {
+        Names {
+            gaussians: "gaussians".into(),
+            cameras: "cameras".into(),
+            masks: "masks".into(),
+        }
+    }
+}
+
+/// The inputs of a registration: Gaussians, the cameras of the views and the masks of
+/// the same views (view v of the masks is view v of the cameras).
+#[derive(Debug, Clone)]
+pub struct Scene<'a> {
+    /// The Gaussians to register descriptors onto.
+    pub gaussians: &'a Gaussians,
+    /// The posed views.
+    pub cameras: &'a Cameras,
+    /// Per-view masks and their features.
+    pub masks: &'a Masks,
+    /// Labels for errors.
+    pub names: Names,
+}
+
+impl<'a> Scene<'a> {
+    /// A scene with the default names.
+    pub fn new(gaussians: &'a Gaussians, cameras: &'a Cameras, masks: &'a Masks) -> Self {
+        Scene {
+            gaussians,
+            cameras,
+            masks,
+            names: Names::default(),
+        }
+    }
+
+    /// The same scene with other names in errors.
+    pub fn named(self, names: Names) -> Self {
+        Scene { names, ..self }
+    }
+
+    /// The masks belong to the cameras (same number and names of views) and their
+    /// tensors agree in size.
+    pub fn check(&self) -> Result<()> {
+        let (m, c) = (self.masks, self.cameras);
+        let mismatch = |detail: String| FuseError::ViewMismatch {
+            masks: self.names.masks.clone(),
+            cameras: self.names.cameras.clone(),
+            detail,
+        };
+        if m.num_views() != c.len() {
+            return Err(mismatch(format!(
+                "{} views in the masks, {} in the cameras",
+                m.num_views(),
+                c.len()
+            )));
+        }
+        if let Some(v) = (0..c.len()).find(|v| m.view_names[*v] != c.image_names[*v]) {
+            return Err(mismatch(format!(
+                "view {v} is {:?} in the masks but {:?} in the cameras",
+                m.view_names[v], c.image_names[v]
+            )));
+        }
+        let bad = |detail: String| FuseError::BadMasks {
+            masks: self.names.masks.clone(),
+            detail,
+        };
+        let v = m.num_views();
+        if m.labels.len() != v * m.width * m.height || m.mask_offsets.len() != v + 1 {
+            return Err(bad(format!(
+                "labels hold {} values and mask_offsets {}, expected {} (V x H x W) and {}",
+                m.labels.len(),
+                m.mask_offsets.len(),
+                v * m.width * m.height,
+                v + 1
+            )));
+        }
+        if m.dim == 0
+            || m.features.len() != m.num_masks() * m.dim
+            || m.mask_offsets.windows(2).any(|w| w[1] < w[0])
+        {
+            return Err(bad(format!(
+                "features hold {} values for {} masks of dimension {}, or mask_offsets decrease",
+                m.features.len(),
+                m.num_masks(),
+                m.dim
+            )));
+        }
+        if u32::try_from(m.width).is_err() || u32::try_from(m.height).is_err() {
+            return Err(bad(format!(
+                "mask grid {}x{} is too large",
+                m.width, m.height
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Options of [`fuse`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FuseOptions {
+    /// Top-K contributors per pixel (1..=256).
+    pub k: usize,
+    /// Storage precision of the descriptors; `None` = that of the mask features.
+    pub precision: Option<Precision>,
+}
+
+impl Default for FuseOptions {
+    fn default() -> Self {
+        FuseOptions {
+            k: DEFAULT_K,
+            precision: None,
+        }
+    }
+}
+
+/// What one view contributed, reported after it was accumulated.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewReport {
+    /// The view.
+    pub view: usize,
+    /// Whether it was rendered (views without any mask pixel are skipped).
+    pub rendered: bool,
+    /// Seconds spent rendering its top-K.
+    pub raster_s: f64,
+    /// Seconds spent scattering its hits.
+    pub accumulate_s: f64,
+    /// Its grouped pixels and their hits.
+    pub counts: HitCounts,
+    /// Nonzero W entries after this view.
+    pub nnz: usize,
+    /// Bytes held by the accumulator after this view.
+    pub accumulator_bytes: usize,
+    /// Bytes of the per-view buffers (top-K outputs and the accumulator's scratch), which
+    /// are reused from view to view.
+    pub view_buffer_bytes: usize,
+    /// The rasterizer's counters (visible Gaussians, tile pairs) of this view.
+    pub render: RenderStats,
+}
+
+/// Registers descriptors from every view in one pass: [`accumulate`] over all views, then
+/// [`finish`].
+pub fn fuse(scene: &Scene<'_>, groups: &Groups, opts: &FuseOptions) -> Result<Registration> {
+    let partial = accumulate(scene, groups, opts.k, 0..scene.cameras.len(), &mut |_| {})?;
+    let precision = opts
+        .precision
+        .unwrap_or_else(|| Precision::of(&scene.masks.features));
+    Ok(finish(&partial, precision))
+}
+
+/// The camera of `view` rendered at a `width` x `height` grid over its image: intrinsics
+/// scaled by (width / image_w, height / image_h), so grid pixel (x, y) is the ray through
+/// the centre of the image region it covers (unchanged when the sizes agree).
+pub fn grid_camera(
+    cameras: &Cameras,
+    view: usize,
+    width: u32,
+    height: u32,
+) -> splat_raster::Result<ViewCamera> {
+    let mut cam = ViewCamera::from_cameras(cameras, view)?;
+    let sx = f64::from(width) / f64::from(cam.width);
+    let sy = f64::from(height) / f64::from(cam.height);
+    let [fx, fy, cx, cy] = cam.intrinsics;
+    cam.intrinsics = [fx * sx, fy * sy, cx * sx, cy * sy];
+    cam.width = width;
+    cam.height = height;
+    Ok(cam)
+}
+
+/// Renders `views` one at a time at the mask grid with top-K `k` and accumulates the mask
+/// masses and W into exact partial sums; `progress` is called after every view.
+pub fn accumulate(
+    scene: &Scene<'_>,
+    groups: &Groups,
+    k: usize,
+    views: Range<usize>,
+    progress: &mut dyn FnMut(&ViewReport),
+) -> Result<PartialSums> {
+    scene.check()?;
+    let masks = scene.masks;
+    let names = &scene.names;
+    groups
+        .check(masks.num_masks())
+        .map_err(|detail| FuseError::BadGrouping {
+            masks: names.masks.clone(),
+            detail,
+        })?;
+    let num_views = scene.cameras.len();
+    if views.start >= views.end || views.end > num_views {
+        return Err(FuseError::ViewRange {
+            start: views.start,
+            end: views.end,
+            views: num_views,
+        });
+    }
+    let render_err = |source| FuseError::Render {
+        cameras: names.cameras.clone(),
+        source,
+    };
+    let raster = Rasterizer::new(scene.gaussians).map_err(|source| FuseError::Gaussians {
+        gaussians: names.gaussians.clone(),
+        source,
+    })?;
+    let opts = RenderOptions {
+        color: false,
+        top_k: Some(k),
+        ..RenderOptions::default()
+    };
+    opts.validate().map_err(render_err)?;
+
+    let mut acc = Accumulator::new(scene.gaussians.len(), masks.num_masks(), groups.num_groups);
+    let mut render = ViewRender::default();
+    let mut timings = Timings::default();
+    let plane = masks.width * masks.height;
+    let topk_bytes = plane * k * 8;
+    for view in views.clone() {
+        let labels = match &masks.labels {
+            Labels::U16(b) => LabelPlane::U16(&b[view * plane..(view + 1) * plane]),
+            Labels::U32(b) => LabelPlane::U32(&b[view * plane..(view + 1) * plane]),
+        };
+        let mut report = ViewReport {
+            view,
+            rendered: false,
+            raster_s: 0.0,
+            accumulate_s: 0.0,
+            counts: HitCounts::default(),
+            nnz: acc.nnz(),
+            accumulator_bytes: acc.heap_bytes(),
+            view_buffer_bytes: topk_bytes + acc.scratch_bytes(),
+            render: RenderStats::default(),
+        };
+        if labels.any_mask() {
+            let t0 = Instant::now();
+            let cam = grid_camera(scene.cameras, view, masks.width as u32, masks.height as u32)
+                .map_err(render_err)?;
+            raster
+                .render_camera_into(&cam, view, &opts, &mut render)
+                .map_err(render_err)?;
+            let t1 = Instant::now();
+            let hits = ViewHits {
+                labels,
+                offset: masks.mask_offsets[view],
+                width: masks.width,
+                ids: render.topk_ids().unwrap_or_default(),
+                weights: render.topk_weights().unwrap_or_default(),
+                k,
+            };
+            report.counts = acc
+                .add_view(&hits, &groups.mask_group, masks.masks_in_view(view), view)
+                .map_err(|detail| FuseError::BadMasks {
+                    masks: names.masks.clone(),
+                    detail,
+                })?;
+            report.rendered = true;
+            report.render = render.stats();
+            report.raster_s = (t1 - t0).as_secs_f64();
+            report.accumulate_s = t1.elapsed().as_secs_f64();
+            report.nnz = acc.nnz();
+            report.accumulator_bytes = acc.heap_bytes();
+            report.view_buffer_bytes = topk_bytes + acc.scratch_bytes();
+            timings.raster_s += report.raster_s;
+            timings.accumulate_s += report.accumulate_s;
+        }
+        progress(&report);
+    }
+    let t0 = Instant::now();
+    let counts = acc.counts();
+    let (weights, mask_mass) = acc.finish()?;
+    timings.compact_s = t0.elapsed().as_secs_f64();
+    Ok(PartialSums {
+        num_gaussians: scene.gaussians.len(),
+        num_views,
+        k,
+        views: views.map(|v| v as u32).collect(),
+        groups: groups.clone(),
+        mask_features: masks.features.clone(),
+        dim: masks.dim,
+        mask_mass,
+        weights,
+        counts,
+        timings,
+    })
+}

@@ -1,0 +1,781 @@
+//! The sparse Gaussian x group weight matrix W and the mask masses, accumulated view by
+//! view in exact fixed point.
+//!
+//! One view is added in three steps, each parallel:
+//! 1. **Tiles.** Every 16x16 pixel tile sums its hits per (Gaussian, group) in a small
+//!    table that stays in L1 (neighbouring pixels share most of their top-K Gaussians), and
+//!    the masks' masses; ~10x fewer (Gaussian, group, Σq) records than hits come out.
+//! 2. **Buckets.** The records are counting-sorted by Gaussian block (4096 Gaussians).
+//! 3. **Blocks.** Each block of W adds its bucket: the block's entries (a few hundred KB)
+//!    stay in cache, and blocks are disjoint, so no locks.
+//!
+//! Ids are arbitrary with respect to the screen, so adding hits straight into a W of a
+//! million Gaussians would miss the cache on almost every first touch of a Gaussian.
+
+use rayon::prelude::*;
+use splat_raster::NO_GAUSSIAN;
+
+use crate::error::{FuseError, Result};
+use crate::groups::NO_GROUP;
+
+/// Weights are stored as integers in units of 2^-62: `q = trunc(ω · 2^62)`. Every f32
+/// weight ω >= 2^-39 converts exactly (its 24-bit mantissa fits), and the rasterizer's
+/// weights are >= 1/255 · 1e-4 ≈ 2^-21.3, so the integer sums are the exact sums of the
+/// rendered weights, in any order.
+pub const WEIGHT_SCALE: f64 = 4_611_686_018_427_387_904.0;
+
+/// One rendered weight in fixed point; 0 for weights below 2^-62, NaN or negative.
+#[inline]
+pub fn quantise(w: f32) -> u64 {
+    // Saturating float-to-int conversion: weights >= 4 (never rendered) clamp.
+    (f64::from(w) * WEIGHT_SCALE) as u64
+}
+
+/// A fixed-point sum as a real number.
+#[inline]
+pub fn dequantise(q: u128) -> f64 {
+    q as f64 / WEIGHT_SCALE
+}
+
+const END: u32 = u32::MAX;
+/// log2 of the Gaussians per block of W.
+const BLOCK_SHIFT: u32 = 12;
+const BLOCK_LEN: usize = 1 << BLOCK_SHIFT;
+/// Side of the pixel tiles of step 1.
+const TILE: usize = 16;
+/// Slots of a tile's table (a power of two); it is flushed when half full.
+const TABLE_SLOTS: usize = 1024;
+
+/// One nonzero W[g, group]: its exact sum (as two halves: 24 bytes, not a 16-aligned 32)
+/// and the next entry of the same Gaussian.
+#[derive(Debug, Clone, Copy)]
+struct Entry {
+    lo: u64,
+    hi: u64,
+    group: u32,
+    next: u32,
+}
+
+impl Entry {
+    #[inline]
+    fn sum(&self) -> u128 {
+        u128::from(self.lo) | (u128::from(self.hi) << 64)
+    }
+
+    #[inline]
+    fn add(&mut self, q: u128) {
+        let (lo, carry) = self.lo.overflowing_add(q as u64);
+        self.lo = lo;
+        self.hi = self.hi.wrapping_add((q >> 64) as u64 + u64::from(carry));
+    }
+}
+
+/// The Gaussians of one block, each with a linked list of its entries.
+#[derive(Debug, Default)]
+struct Block {
+    head: Vec<u32>,
+    entries: Vec<Entry>,
+    overflow: bool,
+}
+
+impl Block {
+    fn new(len: usize) -> Self {
+        Block {
+            head: vec![END; len],
+            entries: Vec::new(),
+            overflow: false,
+        }
+    }
+
+    /// W[g, group] += q, with `local` = g's index in the block. A Gaussian has a handful
+    /// of groups, so the list walk is short.
+    #[inline]
+    fn add(&mut self, local: usize, group: u32, q: u128) {
+        let first = self.head[local];
+        let mut e = first;
+        while e != END {
+            let entry = &mut self.entries[e as usize];
+            if entry.group == group {
+                entry.add(q);
+                return;
+            }
+            e = entry.next;
+        }
+        if self.entries.len() >= END as usize {
+            self.overflow = true;
+            return;
+        }
+        self.head[local] = self.entries.len() as u32;
+        self.entries.push(Entry {
+            lo: q as u64,
+            hi: (q >> 64) as u64,
+            group,
+            next: first,
+        });
+    }
+
+    /// Gaussian `local`'s entries, sorted by group.
+    fn row(&self, local: usize, out: &mut Vec<(u32, u128)>) {
+        out.clear();
+        let mut e = self.head[local];
+        while e != END {
+            let entry = self.entries[e as usize];
+            out.push((entry.group, entry.sum()));
+            e = entry.next;
+        }
+        out.sort_unstable_by_key(|(group, _)| *group);
+    }
+
+    fn row_len(&self, local: usize) -> u64 {
+        let mut n = 0;
+        let mut e = self.head[local];
+        while e != END {
+            n += 1;
+            e = self.entries[e as usize].next;
+        }
+        n
+    }
+
+    fn heap_bytes(&self) -> usize {
+        self.head.capacity() * std::mem::size_of::<u32>()
+            + self.entries.capacity() * std::mem::size_of::<Entry>()
+    }
+}
+
+/// A tile's partial sum of W[g, group] (the sum as two halves keeps the record 8-aligned).
+#[derive(Debug, Clone, Copy, Default)]
+struct Record {
+    g: u32,
+    group: u32,
+    lo: u64,
+    hi: u64,
+}
+
+impl Record {
+    fn sum(&self) -> u128 {
+        u128::from(self.lo) | (u128::from(self.hi) << 64)
+    }
+}
+
+/// Open-addressing table summing one tile's hits per (Gaussian, group).
+#[derive(Debug)]
+struct TileTable {
+    keys: Vec<u64>,
+    sums: Vec<u128>,
+    used: Vec<u32>,
+}
+
+impl TileTable {
+    const EMPTY: u64 = u64::MAX;
+
+    fn new() -> Self {
+        TileTable {
+            keys: vec![Self::EMPTY; TABLE_SLOTS],
+            sums: vec![0; TABLE_SLOTS],
+            used: Vec::with_capacity(TABLE_SLOTS / 2),
+        }
+    }
+
+    #[inline]
+    fn add(&mut self, g: u32, group: u32, q: u64, out: &mut Vec<Record>) {
+        let key = (u64::from(g) << 32) | u64::from(group);
+        let mut i = (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 54) as usize;
+        loop {
+            let k = self.keys[i];
+            if k == key {
+                self.sums[i] += u128::from(q);
+                return;
+            }
+            if k == Self::EMPTY {
+                self.keys[i] = key;
+                self.sums[i] = u128::from(q);
+                self.used.push(i as u32);
+                if self.used.len() >= TABLE_SLOTS / 2 {
+                    self.flush(out);
+                }
+                return;
+            }
+            i = (i + 1) & (TABLE_SLOTS - 1);
+        }
+    }
+
+    fn flush(&mut self, out: &mut Vec<Record>) {
+        for &i in &self.used {
+            let (key, sum) = (self.keys[i as usize], self.sums[i as usize]);
+            out.push(Record {
+                g: (key >> 32) as u32,
+                group: key as u32,
+                lo: sum as u64,
+                hi: (sum >> 64) as u64,
+            });
+            self.keys[i as usize] = Self::EMPTY;
+        }
+        self.used.clear();
+    }
+}
+
+/// The hits of one view, as the accumulation needs them.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct ViewHits<'a> {
+    /// View-local mask label per pixel of the mask grid.
+    pub labels: LabelPlane<'a>,
+    /// Global id of the view's first mask.
+    pub offset: u32,
+    /// Width of the mask grid.
+    pub width: usize,
+    /// Top-K Gaussian ids [H, W, K].
+    pub ids: &'a [u32],
+    /// Top-K weights [H, W, K].
+    pub weights: &'a [f32],
+    /// K.
+    pub k: usize,
+}
+
+/// One view's label map in its stored dtype.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum LabelPlane<'a> {
+    U16(&'a [u16]),
+    U32(&'a [u32]),
+}
+
+impl LabelPlane<'_> {
+    /// Whether some pixel has a mask.
+    pub fn any_mask(&self) -> bool {
+        match self {
+            LabelPlane::U16(l) => l.iter().any(|v| *v != u16::MAX),
+            LabelPlane::U32(l) => l.iter().any(|v| *v != u32::MAX),
+        }
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            LabelPlane::U16(l) => l.len(),
+            LabelPlane::U32(l) => l.len(),
+        }
+    }
+
+    /// The view-local mask at pixel `i`.
+    #[inline]
+    fn local(&self, i: usize) -> Option<usize> {
+        match self {
+            LabelPlane::U16(l) => (l[i] != u16::MAX).then_some(usize::from(l[i])),
+            LabelPlane::U32(l) => (l[i] != u32::MAX).then_some(l[i] as usize),
+        }
+    }
+}
+
+/// Counters of accumulated views.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct HitCounts {
+    /// Mask-grid pixels whose mask registers into a group.
+    pub pixels: u64,
+    /// Top-K hits of those pixels (the scatter operations into W).
+    pub hits: u64,
+}
+
+impl HitCounts {
+    fn add(&mut self, o: HitCounts) {
+        self.pixels += o.pixels;
+        self.hits += o.hits;
+    }
+}
+
+/// What one tile row of a view produced.
+#[derive(Debug, Default)]
+struct RowOutput {
+    records: Vec<Record>,
+    mass: Vec<u128>,
+    counts: HitCounts,
+    error: Option<String>,
+}
+
+/// Buffers of one view, reused from view to view.
+#[derive(Debug, Default)]
+struct ViewScratch {
+    rows: Vec<RowOutput>,
+    sorted: Vec<Record>,
+}
+
+impl ViewScratch {
+    fn heap_bytes(&self) -> usize {
+        let rec = std::mem::size_of::<Record>();
+        self.rows
+            .iter()
+            .map(|r| r.records.capacity() * rec + r.mass.capacity() * 16)
+            .sum::<usize>()
+            + self.sorted.capacity() * rec
+    }
+}
+
+/// W (Gaussian x group, sparse) and the mask masses, accumulated in exact fixed point
+/// ([`WEIGHT_SCALE`]), so the result does not depend on the order of views, pixels or
+/// threads. Memory: 4 bytes per Gaussian, 24 per nonzero (Gaussian, group) pair and 16
+/// per mask, plus one view's scratch (records of its tiles) reused by every view.
+#[derive(Debug)]
+pub struct Accumulator {
+    num_gaussians: usize,
+    num_groups: usize,
+    blocks: Vec<Block>,
+    mask_mass: Vec<u128>,
+    counts: HitCounts,
+    scratch: ViewScratch,
+}
+
+impl Accumulator {
+    /// An empty accumulator for `num_gaussians` Gaussians, `num_masks` masks and
+    /// `num_groups` groups.
+    pub fn new(num_gaussians: usize, num_masks: usize, num_groups: usize) -> Self {
+        let blocks = (0..num_gaussians.div_ceil(BLOCK_LEN))
+            .map(|b| Block::new(BLOCK_LEN.min(num_gaussians - b * BLOCK_LEN)))
+            .collect();
+        Accumulator {
+            num_gaussians,
+            num_groups,
+            blocks,
+            mask_mass: vec![0; num_masks],
+            counts: HitCounts::default(),
+            scratch: ViewScratch::default(),
+        }
+    }
+
+    /// Number of nonzero W entries.
+    pub fn nnz(&self) -> usize {
+        self.blocks.iter().map(|b| b.entries.len()).sum()
+    }
+
+    /// Bytes held by W and the masses (capacities, not lengths).
+    pub fn heap_bytes(&self) -> usize {
+        self.blocks.iter().map(Block::heap_bytes).sum::<usize>()
+            + self.mask_mass.capacity() * std::mem::size_of::<u128>()
+    }
+
+    /// Bytes of the per-view scratch, reused by every view.
+    pub fn scratch_bytes(&self) -> usize {
+        self.scratch.heap_bytes()
+    }
+
+    /// Counters summed over the views accumulated so far.
+    pub fn counts(&self) -> HitCounts {
+        self.counts
+    }
+
+    /// Adds one view: μ(m) += Σ_t ω over every labelled pixel, and W[g, group(m)] += ω
+    /// for every top-K hit g of every pixel whose mask m has a group.
+    pub(crate) fn add_view(
+        &mut self,
+        hits: &ViewHits<'_>,
+        mask_group: &[u32],
+        masks_in_view: usize,
+        view: usize,
+    ) -> Result<HitCounts, String> {
+        let start = hits.offset as usize;
+        let (Some(groups), true) = (
+            mask_group.get(start..start + masks_in_view),
+            start + masks_in_view <= self.mask_mass.len(),
+        ) else {
+            return Err(format!(
+                "view {view}: masks {start}..{} are beyond the mask table",
+                start + masks_in_view
+            ));
+        };
+        let pixels = hits.labels.len();
+        if hits.ids.len() != pixels * hits.k
+            || hits.weights.len() != pixels * hits.k
+            || hits.width == 0
+            || pixels % hits.width != 0
+        {
+            return Err(format!(
+                "view {view}: {} top-K ids and {} weights for {pixels} mask pixels with K = {}",
+                hits.ids.len(),
+                hits.weights.len(),
+                hits.k
+            ));
+        }
+        let tile_rows = (pixels / hits.width).div_ceil(TILE);
+        let scratch = &mut self.scratch;
+        scratch.rows.resize_with(tile_rows, RowOutput::default);
+        let num_gaussians = self.num_gaussians;
+        scratch.rows.par_iter_mut().enumerate().for_each_init(
+            TileTable::new,
+            |table, (ty, out)| {
+                sum_tile_row(hits, groups, num_gaussians, ty, table, out);
+            },
+        );
+        let mut counts = HitCounts::default();
+        for row in &scratch.rows {
+            if let Some(e) = &row.error {
+                return Err(format!("view {view}: {e}"));
+            }
+            counts.add(row.counts);
+            for (m, q) in self.mask_mass[start..].iter_mut().zip(&row.mass) {
+                *m += *q;
+            }
+        }
+        let bounds = bucket_by_block(&scratch.rows, &mut scratch.sorted, self.blocks.len());
+        let jobs: Vec<_> = self
+            .blocks
+            .iter_mut()
+            .zip(bounds.windows(2))
+            .map(|(block, w)| (block, &scratch.sorted[w[0]..w[1]]))
+            .collect();
+        jobs.into_par_iter().for_each(|(block, records)| {
+            for r in records {
+                block.add(r.g as usize & (BLOCK_LEN - 1), r.group, r.sum());
+            }
+        });
+        self.counts.add(counts);
+        Ok(counts)
+    }
+
+    /// W[g, group] += q (merging partial sums).
+    pub(crate) fn add_entry(&mut self, g: usize, group: u32, q: u128) {
+        self.blocks[g >> BLOCK_SHIFT].add(g & (BLOCK_LEN - 1), group, q);
+    }
+
+    /// μ(m) += q (merging partial sums).
+    pub(crate) fn add_mass(&mut self, m: usize, q: u128) {
+        self.mask_mass[m] += q;
+    }
+
+    /// Adds counters (merging partial sums).
+    pub(crate) fn add_counts(&mut self, c: HitCounts) {
+        self.counts.add(c);
+    }
+
+    /// The accumulated W as a CSR matrix (rows = Gaussians, columns sorted) and the mask
+    /// masses.
+    pub(crate) fn finish(self) -> Result<(WeightMatrix, Vec<u128>)> {
+        if self.blocks.iter().any(|b| b.overflow) {
+            return Err(FuseError::TooManyPairs {
+                max: END as usize - 1,
+            });
+        }
+        let mut offsets = Vec::with_capacity(self.num_gaussians + 1);
+        offsets.push(0u64);
+        let mut total = 0u64;
+        for block in &self.blocks {
+            for local in 0..block.head.len() {
+                total += block.row_len(local);
+                offsets.push(total);
+            }
+        }
+        let nnz = total as usize;
+        let mut groups = vec![0u32; nnz];
+        let mut sums = vec![0u128; nnz];
+        // Blocks are independent: fill them in parallel, each block freed once copied, so
+        // W is not held twice in full.
+        let mut rest_g: &mut [u32] = &mut groups;
+        let mut rest_s: &mut [u128] = &mut sums;
+        let mut jobs = Vec::with_capacity(self.blocks.len());
+        for (b, block) in self.blocks.into_iter().enumerate() {
+            let first = b * BLOCK_LEN;
+            let len = (offsets[first + block.head.len()] - offsets[first]) as usize;
+            let (g_now, g_later) = rest_g.split_at_mut(len);
+            let (s_now, s_later) = rest_s.split_at_mut(len);
+            rest_g = g_later;
+            rest_s = s_later;
+            jobs.push((block, g_now, s_now));
+        }
+        jobs.into_par_iter().for_each(|(block, g_out, s_out)| {
+            let block: Block = block;
+            let mut row = Vec::new();
+            let mut i = 0;
+            for local in 0..block.head.len() {
+                block.row(local, &mut row);
+                for (group, sum) in &row {
+                    g_out[i] = *group;
+                    s_out[i] = *sum;
+                    i += 1;
+                }
+            }
+        });
+        Ok((
+            WeightMatrix {
+                num_groups: self.num_groups,
+                offsets,
+                groups,
+                sums,
+            },
+            self.mask_mass,
+        ))
+    }
+}
+
+/// Step 1 for tile row `ty`: the masses of the view's masks, and per tile the sums of its
+/// hits per (Gaussian, group), appended to `out.records`.
+fn sum_tile_row(
+    hits: &ViewHits<'_>,
+    groups: &[u32],
+    num_gaussians: usize,
+    ty: usize,
+    table: &mut TileTable,
+    out: &mut RowOutput,
+) {
+    let (k, width) = (hits.k, hits.width);
+    let height = hits.labels.len() / width;
+    out.records.clear();
+    out.mass.clear();
+    out.mass.resize(groups.len(), 0);
+    out.counts = HitCounts::default();
+    out.error = None;
+    let rows = ty * TILE..((ty + 1) * TILE).min(height);
+    for x0 in (0..width).step_by(TILE) {
+        for y in rows.clone() {
+            for px in y * width + x0..y * width + (x0 + TILE).min(width) {
+                let Some(local) = hits.labels.local(px) else {
+                    continue;
+                };
+                let Some(&group) = groups.get(local) else {
+                    out.error = Some(format!(
+                        "label {local} is beyond the view's {} masks",
+                        groups.len()
+                    ));
+                    table.flush(&mut out.records);
+                    return;
+                };
+                let ids = &hits.ids[px * k..][..k];
+                let ws = &hits.weights[px * k..][..k];
+                let mut pixel = 0u128;
+                let mut n = 0u64;
+                for (&g, &w) in ids.iter().zip(ws) {
+                    if g == NO_GAUSSIAN {
+                        break;
+                    }
+                    if g as usize >= num_gaussians {
+                        out.error = Some(format!(
+                            "the rasterizer returned Gaussian {g} of {num_gaussians}"
+                        ));
+                        table.flush(&mut out.records);
+                        return;
+                    }
+                    let q = quantise(w);
+                    pixel += u128::from(q);
+                    n += 1;
+                    if group != NO_GROUP && q != 0 {
+                        table.add(g, group, q, &mut out.records);
+                    }
+                }
+                out.mass[local] += pixel;
+                if group != NO_GROUP {
+                    out.counts.pixels += 1;
+                    out.counts.hits += n;
+                }
+            }
+        }
+        table.flush(&mut out.records);
+    }
+}
+
+/// Step 2: every row's records, counting-sorted by Gaussian block into `sorted`; returns
+/// the `blocks + 1` bounds of the buckets.
+fn bucket_by_block(rows: &[RowOutput], sorted: &mut Vec<Record>, blocks: usize) -> Vec<usize> {
+    let mut bounds = vec![0usize; blocks + 1];
+    for r in rows.iter().flat_map(|row| &row.records) {
+        bounds[(r.g >> BLOCK_SHIFT) as usize + 1] += 1;
+    }
+    for b in 0..blocks {
+        bounds[b + 1] += bounds[b];
+    }
+    sorted.clear();
+    sorted.resize(bounds[blocks], Record::default());
+    let mut next = bounds.clone();
+    for r in rows.iter().flat_map(|row| &row.records) {
+        let slot = &mut next[(r.g >> BLOCK_SHIFT) as usize];
+        sorted[*slot] = *r;
+        *slot += 1;
+    }
+    bounds
+}
+
+/// The sparse Gaussian x group matrix W in CSR form: row g holds the groups with a
+/// nonzero sum, in ascending order, and their exact fixed-point sums.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct WeightMatrix {
+    /// Number of columns (groups).
+    pub num_groups: usize,
+    /// Row g's entries are `offsets[g] .. offsets[g + 1]`; N + 1 values.
+    pub offsets: Vec<u64>,
+    /// Column (group) of every entry.
+    pub groups: Vec<u32>,
+    /// Σ ω of every entry in units of 2^-62 ([`WEIGHT_SCALE`]).
+    pub sums: Vec<u128>,
+}
+
+impl WeightMatrix {
+    /// Number of rows (Gaussians).
+    pub fn rows(&self) -> usize {
+        self.offsets.len().saturating_sub(1)
+    }
+
+    /// Number of nonzero entries.
+    pub fn nnz(&self) -> usize {
+        self.groups.len()
+    }
+
+    /// Row g: its groups and fixed-point sums.
+    pub fn row(&self, g: usize) -> (&[u32], &[u128]) {
+        let (a, b) = (self.offsets[g] as usize, self.offsets[g + 1] as usize);
+        (&self.groups[a..b], &self.sums[a..b])
+    }
+
+    /// W[g, group] as a real number (0 where absent).
+    pub fn get(&self, g: usize, group: u32) -> f64 {
+        let (groups, sums) = self.row(g);
+        groups
+            .binary_search(&group)
+            .map_or(0.0, |i| dequantise(sums[i]))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+
+    use std::collections::BTreeMap;
+
+    use super::*;
+
+    /// SplitMix64.
+    fn rng(state: &mut u64) -> u64 {
+        *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = *state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Random views with many distinct (Gaussian, group) pairs per tile (so tile tables
+    /// flush), ids over several blocks, unlabelled and ungrouped pixels, padded slots:
+    /// W and the masses equal a map-based reference.
+    #[test]
+    fn accumulator_equals_a_map_reference() {
+        let (n, w, h, k) = (3 * BLOCK_LEN + 17, 37, 21, 6);
+        let masks_per_view = 5;
+        let views = 3;
+        let mask_group: Vec<u32> = (0..views * masks_per_view)
+            .map(|m| if m % 4 == 3 { NO_GROUP } else { (m % 6) as u32 })
+            .collect();
+        let mut acc = Accumulator::new(n, mask_group.len(), 6);
+        let mut w_ref: BTreeMap<(u32, u32), u128> = BTreeMap::new();
+        let mut mass_ref = vec![0u128; mask_group.len()];
+        let mut state = 7;
+        for v in 0..views {
+            let labels: Vec<u16> = (0..w * h)
+                .map(|_| match rng(&mut state) % 7 {
+                    6 => u16::MAX,
+                    l => (l % masks_per_view as u64) as u16,
+                })
+                .collect();
+            let mut ids = vec![NO_GAUSSIAN; w * h * k];
+            let mut weights = vec![0f32; w * h * k];
+            for px in 0..w * h {
+                let filled = (rng(&mut state) % (k as u64 + 1)) as usize;
+                for t in 0..filled {
+                    ids[px * k + t] = (rng(&mut state) % n as u64) as u32;
+                    weights[px * k + t] = (rng(&mut state) % 1000) as f32 / 1024.0;
+                }
+            }
+            let offset = (v * masks_per_view) as u32;
+            for px in 0..w * h {
+                if labels[px] == u16::MAX {
+                    continue;
+                }
+                let m = offset as usize + usize::from(labels[px]);
+                for t in 0..k {
+                    let (g, q) = (ids[px * k + t], quantise(weights[px * k + t]));
+                    if g == NO_GAUSSIAN {
+                        break;
+                    }
+                    mass_ref[m] += u128::from(q);
+                    if mask_group[m] != NO_GROUP && q > 0 {
+                        *w_ref.entry((g, mask_group[m])).or_default() += u128::from(q);
+                    }
+                }
+            }
+            let hits = ViewHits {
+                labels: LabelPlane::U16(&labels),
+                offset,
+                width: w,
+                ids: &ids,
+                weights: &weights,
+                k,
+            };
+            acc.add_view(&hits, &mask_group, masks_per_view, v).unwrap();
+        }
+        assert_eq!(acc.nnz(), w_ref.len());
+        let (matrix, mass) = acc.finish().unwrap();
+        assert_eq!(mass, mass_ref);
+        let mut got = BTreeMap::new();
+        for g in 0..n {
+            let (groups, sums) = matrix.row(g);
+            assert!(groups.windows(2).all(|p| p[0] < p[1]));
+            for (group, sum) in groups.iter().zip(sums) {
+                got.insert((g as u32, *group), *sum);
+            }
+        }
+        assert_eq!(got, w_ref);
+    }
+
+    #[test]
+    fn entry_sums_carry_past_64_bits() {
+        let mut block = Block::new(2);
+        let big = u128::from(u64::MAX);
+        for _ in 0..3 {
+            block.add(1, 7, big);
+        }
+        block.add(1, 7, 5);
+        let mut row = Vec::new();
+        block.row(1, &mut row);
+        assert_eq!(row, vec![(7, 3 * big + 5)]);
+    }
+
+    #[test]
+    fn tile_table_flushes_and_sums() {
+        let mut table = TileTable::new();
+        let mut out = Vec::new();
+        for round in 0..3u64 {
+            for g in 0..2000u32 {
+                table.add(g, g % 3, round + 1, &mut out);
+            }
+        }
+        table.flush(&mut out);
+        let mut sums: BTreeMap<(u32, u32), u128> = BTreeMap::new();
+        for r in &out {
+            *sums.entry((r.g, r.group)).or_default() += r.sum();
+        }
+        assert_eq!(sums.len(), 2000);
+        assert!(sums
+            .iter()
+            .all(|((g, group), s)| *group == g % 3 && *s == 6));
+        assert!(table.keys.iter().all(|k| *k == TileTable::EMPTY));
+    }
+
+    #[test]
+    fn inconsistent_view_buffers_are_errors() {
+        let mut acc = Accumulator::new(10, 2, 2);
+        let labels = [0u16, 1, 1, 0];
+        let hits = ViewHits {
+            labels: LabelPlane::U16(&labels),
+            offset: 0,
+            width: 2,
+            ids: &[0, 1, 2],
+            weights: &[0.5; 3],
+            k: 1,
+        };
+        assert!(acc.add_view(&hits, &[0, 1], 2, 0).is_err());
+        let hits = ViewHits {
+            ids: &[0, 1, 2, 11],
+            weights: &[0.5; 4],
+            ..hits
+        };
+        let err = acc.add_view(&hits, &[0, 1], 2, 0).unwrap_err();
+        assert!(err.contains("Gaussian 11"), "{err}");
+        let hits = ViewHits {
+            labels: LabelPlane::U16(&[0, 1, 2, 0]),
+            ids: &[0, 1, 2, 3],
+            ..hits
+        };
+        let err = acc.add_view(&hits, &[0, 1], 2, 0).unwrap_err();
+        assert!(err.contains("label 2"), "{err}");
+    }
+}

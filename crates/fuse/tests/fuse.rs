@@ -1,0 +1,806 @@
+//! Integration tests of the registration against an independent brute-force reference
+//! (per pixel, per top-K hit, D-dimensional accumulation in f64, written here), on tiny
+//! synthetic scenes whose proposals come from the ground truth.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::{Path, PathBuf};
+
+use profuse_formats::{
+    Cameras, Container, FileKind, FileWriter, Floats, Gaussians, Kind, Labels, Masks, Proposals,
+};
+use profuse_fuse::{
+    accumulate, dequantise, finish, fuse, merge, quantise, FuseError, FuseOptions, Groups, Orphans,
+    PartialSums, Precision, Scene, NO_GROUP,
+};
+use splat_raster::{Rasterizer, RenderOptions, ViewCamera, ViewRender, NO_GAUSSIAN};
+
+// ---------------------------------------------------------------------------------------
+// Fixtures.
+
+struct Fixture {
+    _dir: tempfile::TempDir,
+    path: PathBuf,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    masks: Masks,
+}
+
+/// A tiny synth scene (4 views 64x48, D = 64) with ground-truth Gaussians.
+fn tiny(seed: u64, gaussians: usize) -> Fixture {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = synth::Config::preset(synth::Preset::Tiny, seed);
+    config.gaussians = gaussians;
+    config.write_matches = false;
+    synth::generate(&config, dir.path()).unwrap();
+    let path = dir.path().to_path_buf();
+    Fixture {
+        gaussians: Gaussians::read(path.join("gt/gaussians.safetensors")).unwrap(),
+        cameras: Cameras::read(path.join("cameras.safetensors")).unwrap(),
+        masks: Masks::read(path.join("masks.safetensors")).unwrap(),
+        path,
+        _dir: dir,
+    }
+}
+
+impl Fixture {
+    fn proposals(&self, min_members: usize) -> Proposals {
+        profuse_fuse::testing::proposals_from_mask_objects(
+            self.path.join("gt/mask_objects.json"),
+            &self.masks,
+            min_members,
+        )
+        .unwrap()
+    }
+
+    /// Ground-truth proposals without proposal 0 (the floor): its masks become orphans.
+    fn proposals_without_first(&self) -> Proposals {
+        let p = self.proposals(1);
+        let ids: Vec<u32> = p
+            .mask_proposal
+            .iter()
+            .map(|id| match *id {
+                0 | NO_GROUP => NO_GROUP,
+                id => id - 1,
+            })
+            .collect();
+        Proposals {
+            mask_proposal: ids.into(),
+            proposal_size: p.proposal_size[1..].to_vec().into(),
+            proposal_views: p.proposal_views[1..].to_vec().into(),
+            ..p.clone()
+        }
+    }
+
+    fn groups_with_orphans(&self, orphans: Orphans) -> Groups {
+        Groups::from_proposals(&self.masks, &self.proposals_without_first(), orphans, "p").unwrap()
+    }
+
+    fn groups(&self, min_members: usize, orphans: Orphans) -> Groups {
+        Groups::from_proposals(&self.masks, &self.proposals(min_members), orphans, "p").unwrap()
+    }
+
+    fn scene(&self) -> Scene<'_> {
+        Scene::new(&self.gaussians, &self.cameras, &self.masks)
+    }
+}
+
+fn f32_opts() -> FuseOptions {
+    FuseOptions {
+        precision: Some(Precision::F32),
+        ..FuseOptions::default()
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The brute-force reference.
+
+/// How the reference maps masks to descriptors.
+enum RefGroups {
+    /// Per mask its proposal (or none); descriptors are mass-weighted pools.
+    Pooled(Vec<Option<usize>>),
+    /// Every mask registers its own feature.
+    Own,
+}
+
+struct Reference {
+    features: Vec<Option<Vec<f64>>>,
+    weight_sum: Vec<f64>,
+    mass: Vec<f64>,
+}
+
+/// The camera of a view at the mask grid, built from the cameras' rows directly.
+fn reference_camera(cameras: &Cameras, v: usize, w: usize, h: usize) -> ViewCamera {
+    let m = cameras.world_to_camera[v];
+    let [iw, ih] = cameras.image_size[v];
+    let [fx, fy, cx, cy] = cameras.intrinsics[v];
+    let (sx, sy) = (w as f64 / f64::from(iw), h as f64 / f64::from(ih));
+    ViewCamera {
+        rotation: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
+        translation: [m[3], m[7], m[11]],
+        intrinsics: [fx * sx, fy * sy, cx * sx, cy * sy],
+        width: w as u32,
+        height: h as u32,
+    }
+}
+
+/// Eqs. mask-mass, proposal-desc, accumulate and gaussian-feature, literally: every view
+/// rendered and kept, then every labelled pixel's every hit adds ω f̄ to A[g] in f64.
+fn reference(
+    g: &Gaussians,
+    cams: &Cameras,
+    masks: &Masks,
+    groups: &RefGroups,
+    k: usize,
+) -> Reference {
+    let raster = Rasterizer::new(g).unwrap();
+    let opts = RenderOptions {
+        color: false,
+        top_k: Some(k),
+        ..RenderOptions::default()
+    };
+    let (w, h, d) = (masks.width, masks.height, masks.dim);
+    let renders: Vec<ViewRender> = (0..cams.len())
+        .map(|v| {
+            let mut out = ViewRender::default();
+            raster
+                .render_camera_into(&reference_camera(cams, v, w, h), v, &opts, &mut out)
+                .unwrap();
+            out
+        })
+        .collect();
+    let mask_at = |v: usize, x: usize, y: usize| masks.mask_at(v, x, y).map(|m| m as usize);
+    let hits = |v: usize, x: usize, y: usize| {
+        let (ids, ws) = renders[v].topk(x, y).unwrap();
+        ids.iter()
+            .zip(ws)
+            .filter(|(id, _)| **id != NO_GAUSSIAN)
+            .map(|(id, w)| (*id as usize, f64::from(*w)))
+            .collect::<Vec<_>>()
+    };
+    let pixels = || {
+        (0..cams.len()).flat_map(move |v| (0..h).flat_map(move |y| (0..w).map(move |x| (v, x, y))))
+    };
+
+    let mut mass = vec![0.0; masks.num_masks()];
+    for (v, x, y) in pixels() {
+        if let Some(m) = mask_at(v, x, y) {
+            mass[m] += hits(v, x, y).iter().map(|(_, w)| w).sum::<f64>();
+        }
+    }
+    let feature = |m: usize| -> Vec<f64> {
+        (0..d)
+            .map(|j| f64::from(masks.features.get(m * d + j)))
+            .collect()
+    };
+    let normalise = |v: &mut Vec<f64>| {
+        let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if n > 0.0 {
+            v.iter_mut().for_each(|x| *x /= n);
+        }
+    };
+    // Descriptor of the pixel's mask.
+    let desc_of: Vec<Option<Vec<f64>>> = match groups {
+        RefGroups::Own => (0..masks.num_masks())
+            .map(|m| {
+                let mut f = feature(m);
+                normalise(&mut f);
+                Some(f)
+            })
+            .collect(),
+        RefGroups::Pooled(of) => {
+            let p_count = of.iter().flatten().max().map_or(0, |p| p + 1);
+            let mut pooled = vec![vec![0.0; d]; p_count];
+            for (m, p) in of.iter().enumerate() {
+                if let Some(p) = p {
+                    for (a, f) in pooled[*p].iter_mut().zip(feature(m)) {
+                        *a += mass[m] * f;
+                    }
+                }
+            }
+            pooled.iter_mut().for_each(normalise);
+            of.iter().map(|p| p.map(|p| pooled[p].clone())).collect()
+        }
+    };
+    let n = g.len();
+    let mut a = vec![vec![0.0; d]; n];
+    let mut s = vec![0.0; n];
+    for (v, x, y) in pixels() {
+        let Some(desc) = mask_at(v, x, y).and_then(|m| desc_of[m].as_ref()) else {
+            continue;
+        };
+        for (id, w) in hits(v, x, y) {
+            for (ai, fi) in a[id].iter_mut().zip(desc) {
+                *ai += w * fi;
+            }
+            s[id] += w;
+        }
+    }
+    let features = a
+        .into_iter()
+        .zip(&s)
+        .map(|(mut a, s)| {
+            if *s == 0.0 {
+                return None;
+            }
+            a.iter_mut().for_each(|x| *x /= s.max(1e-12));
+            normalise(&mut a);
+            Some(a)
+        })
+        .collect();
+    Reference {
+        features,
+        weight_sum: s,
+        mass,
+    }
+}
+
+fn pooled_groups(groups: &Groups) -> RefGroups {
+    RefGroups::Pooled(
+        groups
+            .mask_group
+            .iter()
+            .map(|p| (*p != NO_GROUP).then_some(*p as usize))
+            .collect(),
+    )
+}
+
+/// Asserts that the registration equals the reference to 1e-5 per component.
+fn assert_matches(reg: &profuse_fuse::Registration, r: &Reference) -> usize {
+    let f = &reg.features;
+    let d = f.dim;
+    let Floats::F32(values) = &f.features else {
+        panic!("expected F32 features")
+    };
+    let sums = f.weight_sum.as_ref().unwrap();
+    let mut valid = 0;
+    for (g, expected) in r.features.iter().enumerate() {
+        match expected {
+            None => {
+                assert_eq!(f.valid[g], 0, "Gaussian {g} should be invalid");
+                assert_eq!(sums[g], 0.0);
+                assert!(values[g * d..][..d].iter().all(|x| *x == 0.0));
+            }
+            Some(e) => {
+                valid += 1;
+                assert_eq!(f.valid[g], 1, "Gaussian {g} should be valid");
+                let rel = (f64::from(sums[g]) - r.weight_sum[g]).abs() / r.weight_sum[g];
+                assert!(
+                    rel < 1e-6,
+                    "Gaussian {g}: S {} vs {}",
+                    sums[g],
+                    r.weight_sum[g]
+                );
+                for (j, (got, want)) in values[g * d..][..d].iter().zip(e).enumerate() {
+                    assert!(
+                        (f64::from(*got) - want).abs() < 1e-5,
+                        "Gaussian {g} component {j}: {got} vs {want}"
+                    );
+                }
+            }
+        }
+    }
+    assert_eq!(reg.summary.valid, valid);
+    valid
+}
+
+// ---------------------------------------------------------------------------------------
+// Agreement with the reference.
+
+#[test]
+fn proposals_match_the_brute_force_reference() {
+    let fx = tiny(3, 9000);
+    // The floor's masks are orphans, so the ignore rule is exercised.
+    let groups = fx.groups_with_orphans(Orphans::Ignore);
+    assert!(groups.mask_group.contains(&NO_GROUP), "no orphans");
+    let reg = fuse(&fx.scene(), &groups, &f32_opts()).unwrap();
+    let r = reference(
+        &fx.gaussians,
+        &fx.cameras,
+        &fx.masks,
+        &pooled_groups(&groups),
+        10,
+    );
+    let valid = assert_matches(&reg, &r);
+    // The floor (NYU40 class 2) is an orphan: most floor Gaussians stay invalid, nearly
+    // every other one is registered.
+    let classes = fx.gaussians.class_ids.as_ref().unwrap();
+    let count = |floor: bool, valid: u8| {
+        (0..fx.gaussians.len())
+            .filter(|g| (classes[*g] == 2) == floor && reg.features.valid[*g] == valid)
+            .count()
+    };
+    let (floor_valid, floor_invalid) = (count(true, 1), count(true, 0));
+    let (other_valid, other_invalid) = (count(false, 1), count(false, 0));
+    assert!(
+        floor_invalid > 3 * floor_valid,
+        "{floor_valid} {floor_invalid}"
+    );
+    assert!(
+        other_valid > 8 * other_invalid,
+        "{other_valid} {other_invalid}"
+    );
+    assert_eq!(valid, floor_valid + other_valid);
+    // F16 storage rounds the same descriptors.
+    let half = FuseOptions {
+        precision: Some(Precision::F16),
+        ..FuseOptions::default()
+    };
+    let h = fuse(&fx.scene(), &groups, &half).unwrap().features;
+    assert_eq!(h.valid, reg.features.valid);
+    let (a, b) = (h.features.to_f32_vec(), reg.features.features.to_f32_vec());
+    assert!(a
+        .iter()
+        .zip(&b)
+        .all(|(x, y)| (x - y).abs() <= 1e-3 * y.abs().max(1e-2)));
+    // Masses equal the reference's, so mass-weighting is what the paper says.
+    let total: f64 = r.mass.iter().sum();
+    assert!((reg.summary.mass_total - total).abs() < 1e-9 * total);
+    assert!(reg.summary.nnz >= valid && reg.summary.nnz < 3 * valid);
+}
+
+#[test]
+fn singleton_orphans_and_k_match_the_reference() {
+    let fx = tiny(5, 2000);
+    let groups = fx.groups_with_orphans(Orphans::Singleton);
+    assert!(!groups.mask_group.contains(&NO_GROUP));
+    let opts = FuseOptions { k: 4, ..f32_opts() };
+    let reg = fuse(&fx.scene(), &groups, &opts).unwrap();
+    let r = reference(
+        &fx.gaussians,
+        &fx.cameras,
+        &fx.masks,
+        &pooled_groups(&groups),
+        4,
+    );
+    assert_matches(&reg, &r);
+    // Singletons register more Gaussians than ignoring the orphans does.
+    let ignored = fuse(&fx.scene(), &fx.groups_with_orphans(Orphans::Ignore), &opts).unwrap();
+    assert!(reg.summary.valid > ignored.summary.valid);
+}
+
+#[test]
+fn no_proposals_baseline_matches_the_reference() {
+    let fx = tiny(7, 2000);
+    let groups = Groups::per_mask(&fx.masks);
+    let reg = fuse(&fx.scene(), &groups, &f32_opts()).unwrap();
+    let r = reference(&fx.gaussians, &fx.cameras, &fx.masks, &RefGroups::Own, 10);
+    assert_matches(&reg, &r);
+    assert_eq!(reg.summary.groups, fx.masks.num_masks());
+}
+
+/// Masks on a grid coarser than the images (and with U32 labels): the views are rendered
+/// at the grid with scaled intrinsics.
+#[test]
+fn coarser_mask_grid_matches_the_reference() {
+    let fx = tiny(11, 3000);
+    let (w, h) = (fx.masks.width / 2, fx.masks.height / 2);
+    let mut labels = Vec::new();
+    for v in 0..fx.masks.num_views() {
+        for y in 0..h {
+            for x in 0..w {
+                let i = (v * fx.masks.height + 2 * y) * fx.masks.width + 2 * x;
+                labels.push(fx.masks.labels.get(i).unwrap_or(u32::MAX));
+            }
+        }
+    }
+    let coarse = Masks {
+        width: w,
+        height: h,
+        labels: Labels::U32(labels.into()),
+        ..fx.masks.clone()
+    };
+    coarse.validate("coarse").unwrap();
+    let groups = fx.groups(1, Orphans::Ignore);
+    let scene = Scene::new(&fx.gaussians, &fx.cameras, &coarse);
+    let reg = fuse(&scene, &groups, &f32_opts()).unwrap();
+    let r = reference(
+        &fx.gaussians,
+        &fx.cameras,
+        &coarse,
+        &pooled_groups(&groups),
+        10,
+    );
+    let valid = assert_matches(&reg, &r);
+    assert!(valid > 1000, "{valid}");
+    // A quarter of the pixels: the mass is about a quarter of the full grid's.
+    let full = fuse(&fx.scene(), &groups, &f32_opts()).unwrap();
+    let ratio = reg.summary.mass_total / full.summary.mass_total;
+    assert!((0.2..0.3).contains(&ratio), "mass ratio {ratio}");
+}
+
+/// Share of the valid Gaussians (with a ground-truth class) whose descriptor is closest to
+/// the feature centroid of their own class (centroids of the masks by dominant class).
+fn class_accuracy(fx: &Fixture, reg: &profuse_fuse::Registration) -> f64 {
+    let json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(fx.path.join("gt/mask_objects.json")).unwrap(),
+    )
+    .unwrap();
+    let d = fx.masks.dim;
+    let mut centroids: std::collections::BTreeMap<i64, Vec<f64>> = Default::default();
+    for (m, e) in json["masks"].as_array().unwrap().iter().enumerate() {
+        if let Some(c) = e["class_id"].as_i64() {
+            let row = centroids.entry(c).or_insert_with(|| vec![0.0; d]);
+            for (j, r) in row.iter_mut().enumerate() {
+                *r += f64::from(fx.masks.features.get(m * d + j));
+            }
+        }
+    }
+    let classes = fx.gaussians.class_ids.as_ref().unwrap();
+    let (mut right, mut total) = (0, 0);
+    for g in 0..fx.gaussians.len() {
+        if reg.features.valid[g] == 0 || classes[g] < 0 {
+            continue;
+        }
+        let f: Vec<f64> = (0..d)
+            .map(|j| f64::from(reg.features.features.get(g * d + j)))
+            .collect();
+        let best = centroids
+            .iter()
+            .map(|(c, v)| {
+                let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+                (v.iter().zip(&f).map(|(a, b)| a * b).sum::<f64>() / n, *c)
+            })
+            .max_by(|a, b| a.0.total_cmp(&b.0))
+            .unwrap()
+            .1;
+        total += 1;
+        right += usize::from(best == i64::from(classes[g]));
+    }
+    assert!(total > fx.gaussians.len() / 2, "{total}");
+    right as f64 / total as f64
+}
+
+/// The registered descriptors carry the right semantics: most Gaussians are closest to
+/// the feature centroid of their own ground-truth class.
+#[test]
+fn gaussians_get_their_own_class() {
+    let fx = tiny(14, 3000);
+    let reg = fuse(&fx.scene(), &fx.groups(1, Orphans::Ignore), &f32_opts()).unwrap();
+    let base = fuse(&fx.scene(), &Groups::per_mask(&fx.masks), &f32_opts()).unwrap();
+    // A wrong Gaussian-to-descriptor assignment would score about 1 / (classes = 8).
+    let (ours, baseline) = (class_accuracy(&fx, &reg), class_accuracy(&fx, &base));
+    assert!(ours > 0.9 && baseline > 0.85, "{ours} {baseline}");
+}
+
+// ---------------------------------------------------------------------------------------
+// Sharding, determinism, memory.
+
+fn bytes(reg: &profuse_fuse::Registration, dir: &Path, name: &str) -> Vec<u8> {
+    let p = dir.join(name);
+    reg.features.write(&p).unwrap();
+    std::fs::read(p).unwrap()
+}
+
+#[test]
+fn sharded_partial_files_merge_to_the_unsharded_bytes() {
+    let fx = tiny(17, 9000);
+    let dir = tempfile::tempdir().unwrap();
+    for groups in [
+        fx.groups_with_orphans(Orphans::Ignore),
+        Groups::per_mask(&fx.masks),
+    ] {
+        let scene = fx.scene();
+        let whole = fuse(&scene, &groups, &FuseOptions::default()).unwrap();
+        let expected = bytes(&whole, dir.path(), "whole.safetensors");
+        let mut parts = Vec::new();
+        for (i, range) in [0..1, 1..3, 3..4].into_iter().enumerate() {
+            let p = accumulate(&scene, &groups, 10, range, &mut |_| {}).unwrap();
+            let path = dir.path().join(format!("part{i}.safetensors"));
+            p.write(&path).unwrap();
+            let back = PartialSums::read(&path).unwrap();
+            assert_eq!(back.weights(), p.weights());
+            assert_eq!(back.mask_mass(), p.mask_mass());
+            assert_eq!(back.views(), p.views());
+            assert_eq!(back.groups(), p.groups());
+            assert_eq!(back.mask_features(), p.mask_features());
+            assert_eq!(back.counts(), p.counts());
+            assert_eq!((back.k(), back.num_views()), (10, 4));
+            parts.push(back);
+        }
+        parts.reverse();
+        let merged = merge(&parts, &[]).unwrap();
+        assert!(merged.is_complete());
+        let precision = Precision::of(&fx.masks.features);
+        let got = bytes(
+            &finish(&merged, precision),
+            dir.path(),
+            "merged.safetensors",
+        );
+        assert_eq!(got, expected, "{:?}", groups.grouping);
+        assert_eq!(merged.counts(), whole_counts(&scene, &groups));
+    }
+}
+
+fn whole_counts(scene: &Scene<'_>, groups: &Groups) -> profuse_fuse::HitCounts {
+    accumulate(scene, groups, 10, 0..4, &mut |_| {})
+        .unwrap()
+        .counts()
+}
+
+#[test]
+fn thread_count_does_not_change_the_bytes() {
+    let fx = tiny(19, 9000);
+    let groups = fx.groups(1, Orphans::Singleton);
+    let dir = tempfile::tempdir().unwrap();
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        let reg = pool.install(|| fuse(&fx.scene(), &groups, &f32_opts()).unwrap());
+        bytes(&reg, dir.path(), &format!("t{threads}.safetensors"))
+    };
+    let one = run(1);
+    assert_eq!(one, run(4));
+    assert_eq!(one, run(3));
+}
+
+/// Memory does not grow with the number of views: rendering every view a second time
+/// (cameras and masks duplicated, the copies in the same proposals) adds no W entry and no
+/// accumulator byte, and the per-view buffers stay one view's.
+#[test]
+fn accumulator_size_is_independent_of_the_number_of_views() {
+    let fx = tiny(23, 9000);
+    let (c, m) = (&fx.cameras, &fx.masks);
+    let v = c.len();
+    let twice = |names: &[String]| {
+        names
+            .iter()
+            .chain(names)
+            .enumerate()
+            .map(|(i, n)| if i < v { n.clone() } else { format!("{n}#2") })
+            .collect::<Vec<_>>()
+    };
+    let cameras = Cameras {
+        image_names: twice(&c.image_names),
+        image_size: [&c.image_size[..], &c.image_size[..]].concat().into(),
+        intrinsics: [&c.intrinsics[..], &c.intrinsics[..]].concat().into(),
+        world_to_camera: [&c.world_to_camera[..], &c.world_to_camera[..]]
+            .concat()
+            .into(),
+        ..c.clone()
+    };
+    let Labels::U16(labels) = &m.labels else {
+        panic!("synth writes U16 labels")
+    };
+    let total = m.num_masks() as u32;
+    let offsets: Vec<u32> = m
+        .mask_offsets
+        .iter()
+        .copied()
+        .chain(m.mask_offsets[1..].iter().map(|o| o + total))
+        .collect();
+    let Floats::F16(f) = &m.features else {
+        panic!("synth writes F16 features")
+    };
+    let masks = Masks {
+        view_names: twice(&m.view_names),
+        labels: Labels::U16([&labels[..], &labels[..]].concat().into()),
+        mask_offsets: offsets.into(),
+        features: Floats::F16([&f[..], &f[..]].concat().into()),
+        ..m.clone()
+    };
+    let p = fx.proposals(1);
+    let proposals = Proposals {
+        mask_proposal: [&p.mask_proposal[..], &p.mask_proposal[..]].concat().into(),
+        proposal_size: p
+            .proposal_size
+            .iter()
+            .map(|s| 2 * s)
+            .collect::<Vec<_>>()
+            .into(),
+        proposal_views: p
+            .proposal_views
+            .iter()
+            .map(|s| 2 * s)
+            .collect::<Vec<_>>()
+            .into(),
+        ..p.clone()
+    };
+    let groups = Groups::from_proposals(&masks, &proposals, Orphans::Ignore, "p").unwrap();
+    let scene = Scene::new(&fx.gaussians, &cameras, &masks);
+    let mut reports = Vec::new();
+    let doubled = accumulate(&scene, &groups, 10, 0..2 * v, &mut |r| reports.push(*r)).unwrap();
+    let first = &reports[v - 1];
+    let last = &reports[2 * v - 1];
+    assert_eq!(first.nnz, last.nnz);
+    assert_eq!(first.accumulator_bytes, last.accumulator_bytes);
+    // One view's buffers: the top-K outputs plus the scratch of the largest view so far,
+    // which the repeated views do not grow.
+    let topk_bytes = m.width * m.height * 10 * 8;
+    assert!(reports.iter().all(|r| r.view_buffer_bytes >= topk_bytes));
+    assert_eq!(first.view_buffer_bytes, last.view_buffer_bytes);
+    let scratch = last.view_buffer_bytes - topk_bytes;
+    let hits = reports.iter().map(|r| r.counts.hits).max().unwrap() as usize;
+    assert!(
+        scratch <= 4 * 24 * hits + 16 * masks.num_masks() + (1 << 16),
+        "{scratch}"
+    );
+    // O(nnz): 4 bytes per Gaussian, at most 2 x 24 per pair (vector growth), 16 per mask,
+    // and 24 per block of 4096 Gaussians.
+    let bound = 4 * fx.gaussians.len() + 48 * last.nnz + 16 * masks.num_masks() + 4096;
+    assert!(
+        last.accumulator_bytes <= bound,
+        "{} > {bound}",
+        last.accumulator_bytes
+    );
+
+    // Every sum exactly doubled; the descriptors are the same.
+    let single = accumulate(
+        &fx.scene(),
+        &fx.groups(1, Orphans::Ignore),
+        10,
+        0..v,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(single.weights().offsets, doubled.weights().offsets);
+    assert_eq!(single.weights().groups, doubled.weights().groups);
+    assert!(single
+        .weights()
+        .sums
+        .iter()
+        .zip(&doubled.weights().sums)
+        .all(|(a, b)| 2 * a == *b));
+    let a = finish(&single, Precision::F32).features;
+    let b = finish(&doubled, Precision::F32).features;
+    assert_eq!(a.valid, b.valid);
+    let (fa, fb) = (a.features.to_f32_vec(), b.features.to_f32_vec());
+    assert!(fa.iter().zip(&fb).all(|(x, y)| (x - y).abs() < 1e-6));
+    let (sa, sb) = (a.weight_sum.unwrap(), b.weight_sum.unwrap());
+    assert!(sa.iter().zip(sb.iter()).all(|(x, y)| 2.0 * x == *y));
+}
+
+#[test]
+fn weights_are_quantised_exactly() {
+    let mut w = 1.0f32;
+    while w > 1e-9 {
+        for x in [w, w * 0.7317, w * 0.999_999_9] {
+            assert_eq!(dequantise(u128::from(quantise(x))), f64::from(x), "{x}");
+        }
+        w *= 0.5;
+    }
+    assert_eq!(quantise(0.0), 0);
+    assert_eq!(quantise(-1.0), 0);
+    assert_eq!(quantise(f32::NAN), 0);
+}
+
+// ---------------------------------------------------------------------------------------
+// Errors.
+
+/// Copies a safetensors file with one tensor's bytes changed.
+fn rewrite_tensor(from: &Path, to: &Path, name: &str, change: impl Fn(&[u8]) -> Vec<u8>) {
+    let c = Container::open(from).unwrap();
+    let mut w = FileWriter::new(Kind::Features);
+    for (k, v) in c.metadata() {
+        w.meta(k, v.clone());
+    }
+    for (t, info) in c.tensors() {
+        let raw = c.raw(t).unwrap();
+        let bytes = if t == name { change(raw) } else { raw.to_vec() };
+        w.raw_tensor(t, info.dtype, &info.shape, bytes);
+    }
+    w.commit(to).unwrap();
+}
+
+#[test]
+fn mismatched_inputs_are_typed_errors_naming_the_inputs() {
+    let fx = tiny(29, 500);
+    let groups = fx.groups(1, Orphans::Ignore);
+    // Masks of other views.
+    let mut renamed = fx.masks.clone();
+    renamed.view_names[2] = "elsewhere.png".into();
+    let names = profuse_fuse::Names {
+        masks: "m.safetensors".into(),
+        cameras: "c.safetensors".into(),
+        ..Default::default()
+    };
+    let scene = Scene::new(&fx.gaussians, &fx.cameras, &renamed).named(names);
+    let err = fuse(&scene, &groups, &FuseOptions::default()).unwrap_err();
+    assert!(matches!(err, FuseError::ViewMismatch { .. }));
+    let text = err.to_string();
+    assert!(
+        text.contains("m.safetensors") && text.contains("c.safetensors") && text.contains("view 2"),
+        "{text}"
+    );
+    // Proposals of another masks file.
+    let mut p = fx.proposals(1);
+    p.mask_proposal = p.mask_proposal[1..].to_vec().into();
+    let err = Groups::from_proposals(&fx.masks, &p, Orphans::Ignore, "p.safetensors").unwrap_err();
+    assert!(err.to_string().contains("p.safetensors"), "{err}");
+    // A grouping built in memory that points past its groups.
+    let mut broken = groups.clone();
+    broken.mask_group[1] = broken.num_groups as u32;
+    let err = fuse(&fx.scene(), &broken, &FuseOptions::default()).unwrap_err();
+    assert!(matches!(err, FuseError::BadGrouping { .. }), "{err}");
+    assert!(err.to_string().contains("mask 1"), "{err}");
+    // Views out of range, K out of range.
+    let scene = fx.scene();
+    let err = accumulate(&scene, &groups, 10, 3..9, &mut |_| {}).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            FuseError::ViewRange {
+                end: 9,
+                views: 4,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    let err = accumulate(&scene, &groups, 0, 0..4, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, FuseError::Render { .. }), "{err}");
+}
+
+#[test]
+fn merge_rejects_overlaps_mismatches_and_corrupt_files() {
+    let fx = tiny(31, 500);
+    let groups = fx.groups(1, Orphans::Ignore);
+    let scene = fx.scene();
+    let a = accumulate(&scene, &groups, 10, 0..2, &mut |_| {}).unwrap();
+    let b = accumulate(&scene, &groups, 10, 1..4, &mut |_| {}).unwrap();
+    let names = ["a.st".to_string(), "b.st".to_string()];
+    let err = merge(&[a.clone(), b], &names).unwrap_err();
+    assert!(
+        matches!(err, FuseError::ViewOverlap { view: 1, .. }),
+        "{err}"
+    );
+    assert!(err.to_string().contains("a.st") && err.to_string().contains("b.st"));
+
+    let c = accumulate(&scene, &groups, 8, 2..4, &mut |_| {}).unwrap();
+    let err = merge(&[a.clone(), c], &names).unwrap_err();
+    assert!(
+        matches!(err, FuseError::PartialMismatch { field: "k", .. }),
+        "{err}"
+    );
+    let other = accumulate(
+        &scene,
+        &fx.groups(1, Orphans::Singleton),
+        10,
+        2..4,
+        &mut |_| {},
+    )
+    .unwrap();
+    let err = merge(&[a.clone(), other], &names).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            FuseError::PartialMismatch {
+                field: "orphans",
+                ..
+            }
+        ),
+        "{err}"
+    );
+
+    let half = merge(std::slice::from_ref(&a), &[]).unwrap();
+    assert!(!half.is_complete());
+    assert_eq!(half.missing_views(), "2..4");
+    assert!(matches!(merge(&[], &[]), Err(FuseError::NothingToMerge)));
+
+    // A partial file whose rows are not sorted is rejected, naming file and tensor.
+    let dir = tempfile::tempdir().unwrap();
+    let good = dir.path().join("good.safetensors");
+    a.write(&good).unwrap();
+    let path = dir.path().join("bad.safetensors");
+    rewrite_tensor(&good, &path, "w_groups", |bytes| {
+        let groups: Vec<u32> = bytemuck::pod_collect_to_vec(bytes);
+        let offsets = a.weights().offsets.clone();
+        let row = (0..a.weights().rows())
+            .find(|g| offsets[g + 1] - offsets[*g] >= 2)
+            .expect("a Gaussian with two groups");
+        let mut groups = groups;
+        groups.swap(offsets[row] as usize, offsets[row] as usize + 1);
+        bytemuck::cast_slice(&groups).to_vec()
+    });
+    let err = PartialSums::read(&path).unwrap_err();
+    let FuseError::Format(e) = &err else {
+        panic!("{err}")
+    };
+    assert_eq!((e.code(), e.field()), ("out_of_range", Some("w_groups")));
+    assert!(err.to_string().contains("bad.safetensors"));
+    // Another kind of file.
+    let err = PartialSums::read(fx.path.join("masks.safetensors")).unwrap_err();
+    assert!(err.to_string().contains("profuse.fuse_partial"), "{err}");
+}
