@@ -84,7 +84,7 @@ pub use selection::Selection;
 pub use topk::{TopK, NO_GAUSSIAN, WEIGHT_SUM_TOLERANCE};
 pub use vertex_labels::VertexLabels;
 pub use view_maps::{ViewMaps, NO_OBJECT};
-pub use writer::FileWriter;
+pub use writer::{write_atomically, FileWriter};
 
 /// Re-exported so users can build F16 tensors without naming the `half` crate.
 pub use half::f16;

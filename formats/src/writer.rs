@@ -167,36 +167,45 @@ impl<'a> FileWriter<'a> {
     /// Writes the file atomically: temp file in the same directory, fsync, rename.
     pub fn commit(&self, path: impl AsRef<Path>) -> Result<()> {
         let path = path.as_ref();
-        let label = path.display().to_string();
-        let io = |action, source| FormatError::Io {
-            path: label.clone(),
+        write_atomically(path, |out| {
+            let mut w = std::io::BufWriter::with_capacity(1 << 20, out);
+            self.serialise(&mut w)
+        })
+        .map_err(|(action, source)| FormatError::Io {
+            path: path.display().to_string(),
             action,
             source,
-        };
-        let dir = match path.parent() {
-            Some(p) if !p.as_os_str().is_empty() => p,
-            _ => Path::new("."),
-        };
-        let mut builder = tempfile::Builder::new();
-        builder.prefix(".profuse-tmp-");
-        // Like File::create: 0666 minus the umask, not tempfile's private 0600.
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            builder.permissions(std::fs::Permissions::from_mode(0o666));
-        }
-        let tmp = builder
-            .tempfile_in(dir)
-            .map_err(|e| io("cannot create a temporary file next to it", e))?;
-        {
-            let mut w = std::io::BufWriter::with_capacity(1 << 20, tmp.as_file());
-            self.serialise(&mut w).map_err(|e| io("cannot write", e))?;
-        }
-        tmp.as_file()
-            .sync_all()
-            .map_err(|e| io("cannot flush", e))?;
-        tmp.persist(path)
-            .map_err(|e| io("cannot rename into place", e.error))?;
-        Ok(())
+        })
     }
+}
+
+/// Writes any file atomically, the way every ProFuse writer does: `fill` writes into a
+/// temporary file in the target's directory (mode 0666 minus the umask, like
+/// `File::create`), which is flushed to disk and renamed over `path`, so readers never see
+/// a partial file and a failure leaves nothing behind. The error names the step that
+/// failed (`cannot create a temporary file next to it`, `cannot write`, `cannot flush`,
+/// `cannot rename into place`). Crates use it for their PNG and JSON outputs.
+pub fn write_atomically(
+    path: &Path,
+    fill: impl FnOnce(&std::fs::File) -> std::io::Result<()>,
+) -> std::result::Result<(), (&'static str, std::io::Error)> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".profuse-tmp-");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let tmp = builder
+        .tempfile_in(dir)
+        .map_err(|e| ("cannot create a temporary file next to it", e))?;
+    fill(tmp.as_file()).map_err(|e| ("cannot write", e))?;
+    tmp.as_file().sync_all().map_err(|e| ("cannot flush", e))?;
+    tmp.persist(path)
+        .map_err(|e| ("cannot rename into place", e.error))?;
+    Ok(())
 }

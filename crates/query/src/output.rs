@@ -29,22 +29,8 @@ pub(crate) fn write_png(
             path: path.display().to_string(),
             source,
         })?;
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = path.with_file_name(format!(".profuse-tmp-{name}-{}", std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp, "cannot create"))?;
-        f.write_all(&bytes).map_err(io_err(&tmp, "cannot write"))?;
-        f.flush().map_err(io_err(&tmp, "cannot flush"))?;
-        drop(f);
-        std::fs::rename(&tmp, path).map_err(io_err(path, "cannot rename into place"))
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    profuse_formats::write_atomically(path, |mut f| f.write_all(&bytes))
+        .map_err(|(action, e)| io_err(path, action)(e))
 }
 
 /// The rendered colour (f32 RGB in [0, 1], [H, W, 3]) with the pixels of `mask` (255 =

@@ -13,22 +13,8 @@ use crate::error::{io_err, Result, SynthError};
 fn atomic_write(path: &Path, fill: impl FnOnce(&mut Vec<u8>) -> Result<()>) -> Result<()> {
     let mut bytes = Vec::new();
     fill(&mut bytes)?;
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = path.with_file_name(format!(".profuse-tmp-{name}-{}", std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp, "cannot create"))?;
-        f.write_all(&bytes).map_err(io_err(&tmp, "cannot write"))?;
-        f.flush().map_err(io_err(&tmp, "cannot flush"))?;
-        drop(f);
-        std::fs::rename(&tmp, path).map_err(io_err(path, "cannot rename into place"))
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    profuse_formats::write_atomically(path, |mut f| f.write_all(&bytes))
+        .map_err(|(action, e)| io_err(path, action)(e))
 }
 
 /// Writes an 8-bit RGB PNG.
