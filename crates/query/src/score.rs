@@ -5,6 +5,9 @@ use rayon::prelude::*;
 
 use crate::error::{QueryError, Result};
 
+/// The descriptor dot product (f32, fixed summation order), shared with vertex-transfer.
+pub use profuse_pq::dot;
+
 /// Names of the canonical negatives of the LERF relevancy score (SPEC.md §4.9).
 pub const CANONICAL_NEGATIVES: [&str; 4] = ["object", "things", "stuff", "texture"];
 
@@ -175,24 +178,6 @@ fn pq_cosines(pq: &Pq, units: &[Vec<f32>]) -> Result<Vec<Vec<f32>>> {
         .collect()
 }
 
-/// Dot product in f32 with eight partial sums combined in a fixed order (vectorises;
-/// the result does not depend on the thread count).
-pub fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..8 {
-            acc[l] += x[l] * y[l];
-        }
-    }
-    let mut tail = 0.0f32;
-    for (x, y) in ra.iter().zip(rb) {
-        tail += x * y;
-    }
-    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
-}
-
 /// `v / ‖v‖₂`, or `None` when `v` is zero or not finite.
 pub fn unit_vector(v: &[f32]) -> Option<Vec<f32>> {
     let norm = v
@@ -334,20 +319,6 @@ fn prompt_name(prompts: &Prompts, i: usize) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn dot_matches_a_plain_sum_for_every_length() {
-        for n in 0..40 {
-            let a: Vec<f32> = (0..n).map(|i| (i as f32 * 0.37).sin()).collect();
-            let b: Vec<f32> = (0..n).map(|i| (i as f32 * 0.91).cos()).collect();
-            let want: f64 = a
-                .iter()
-                .zip(&b)
-                .map(|(x, y)| f64::from(*x) * f64::from(*y))
-                .sum();
-            assert!((f64::from(dot(&a, &b)) - want).abs() < 1e-5, "n = {n}");
-        }
-    }
 
     #[test]
     fn unit_vector_rejects_zero_and_non_finite() {

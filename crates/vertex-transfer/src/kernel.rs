@@ -3,6 +3,9 @@
 
 use crate::classes::ClassSet;
 
+/// The descriptor dot product (f32, fixed summation order), shared with query.
+pub use profuse_pq::dot;
+
 /// One Gaussian prepared for gating: d² = |W (x − μ)|² with W = S⁻¹ Rᵀ, which is
 /// (x − μ)ᵀ Σ⁻¹ (x − μ) for Σ = R S Sᵀ Rᵀ.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -135,37 +138,9 @@ pub fn class_probabilities(
     }
 }
 
-/// Dot product with eight independent accumulators (vectorises; fixed summation order,
-/// so results do not depend on anything but the inputs).
-pub fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for k in 0..8 {
-            acc[k] += x[k] * y[k];
-        }
-    }
-    let mut tail = 0.0f32;
-    for (x, y) in ra.iter().zip(rb) {
-        tail += x * y;
-    }
-    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn dot_matches_a_plain_sum_for_every_length() {
-        for n in 0..40 {
-            let a: Vec<f32> = (0..n).map(|i| (i as f32 * 0.37).sin()).collect();
-            let b: Vec<f32> = (0..n).map(|i| (i as f32 * 0.11).cos()).collect();
-            let plain: f64 = a.iter().zip(&b).map(|(x, y)| f64::from(x * y)).sum();
-            assert!((f64::from(dot(&a, &b)) - plain).abs() < 1e-5, "n = {n}");
-        }
-    }
 
     #[test]
     fn rotation_matrix_is_orthonormal_and_rotates_about_z() {
