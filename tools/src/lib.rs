@@ -64,3 +64,10 @@ pub fn peak_rss_mb() -> f64 {
         })
         .map_or(0.0, |kb| kb / 1024.0)
 }
+
+/// Writes a tool's output file (JSON, PNG) atomically with
+/// [`profuse_formats::write_atomically`]; the error names the file and the failed step.
+pub fn write_file(path: &std::path::Path, bytes: &[u8]) -> Result<(), BoxError> {
+    profuse_formats::write_atomically(path, |mut f| f.write_all(bytes))
+        .map_err(|(action, e)| format!("{}: {action}: {e}", path.display()).into())
+}

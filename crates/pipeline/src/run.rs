@@ -628,7 +628,7 @@ fn remove_dir(dir: &Path) -> Result<()> {
 
 /// Writes a text file atomically.
 pub(crate) fn write_text(path: &Path, text: &str) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, text).map_err(io_err(path, "cannot write"))?;
-    std::fs::rename(&tmp, path).map_err(io_err(path, "cannot rename into place"))
+    use std::io::Write;
+    profuse_formats::write_atomically(path, |mut f| f.write_all(text.as_bytes()))
+        .map_err(|(action, e)| io_err(path, action)(e))
 }

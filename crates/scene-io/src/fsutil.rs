@@ -44,41 +44,19 @@ pub(crate) fn list_dir(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(paths)
 }
 
-/// Writes a file atomically: the content goes to a temporary file in the target's
-/// directory, which is flushed and then renamed over the target, so a reader never sees
-/// a half-written file and a failed write leaves nothing behind.
+/// Writes a file atomically ([`profuse_formats::write_atomically`]: temporary file in the
+/// target's directory, flushed, renamed over the target), buffered, with errors naming
+/// the file.
 pub(crate) fn write_atomically(
     path: &Path,
     fill: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> Result<()> {
-    let label = show(path);
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let mut builder = tempfile::Builder::new();
-    builder.prefix(".scene-io-tmp-");
-    // Temporary files are private (0600) by default; an export is an ordinary file, so
-    // ask for 0666 and let the umask decide, as any newly created file would.
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        builder.permissions(fs::Permissions::from_mode(0o666));
-    }
-    let tmp = builder
-        .tempfile_in(dir)
-        .map_err(|e| io_err(&label, "cannot create a temporary file next to it", e))?;
-    {
-        let mut out = BufWriter::new(tmp.as_file());
-        fill(&mut out).map_err(|e| io_err(&label, "cannot write", e))?;
-        out.flush().map_err(|e| io_err(&label, "cannot write", e))?;
-    }
-    tmp.as_file()
-        .sync_all()
-        .map_err(|e| io_err(&label, "cannot flush", e))?;
-    tmp.persist(path)
-        .map_err(|e| io_err(&label, "cannot rename into place", e.error))?;
-    Ok(())
+    profuse_formats::write_atomically(path, |file| {
+        let mut out = BufWriter::new(file);
+        fill(&mut out)?;
+        out.flush()
+    })
+    .map_err(|(action, e)| io_err(&show(path), action, e))
 }
 
 /// Width and height of an image, read from its header only (the pixels are not decoded).

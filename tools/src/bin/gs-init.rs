@@ -320,21 +320,10 @@ fn report_value(report: &Report) -> Result<Value, BoxError> {
     Ok(serde_json::to_value(report)?)
 }
 
-/// Writes pretty JSON atomically (temporary file next to it, then rename).
+/// Writes pretty JSON atomically.
 fn write_json(path: &Path, value: &Value) -> Result<(), BoxError> {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = path.with_file_name(format!(".profuse-tmp-{}-{name}", std::process::id()));
     let text = serde_json::to_string_pretty(value)? + "\n";
-    if let Err(e) = std::fs::write(&tmp, text) {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(format!("cannot write {}: {e}", path.display()).into());
-    }
-    std::fs::rename(&tmp, path)
-        .map_err(|e| format!("cannot rename into {}: {e}", path.display()))?;
-    Ok(())
+    profuse_tools::write_file(path, text.as_bytes())
 }
 
 /// A synthetic scene in a temporary folder, removed on drop.

@@ -245,10 +245,7 @@ fn run_scene(scene: &Path, common: &Common) -> Result<Value, BoxError> {
 }
 
 fn write_json(path: &Path, value: &Value) -> Result<(), BoxError> {
-    let tmp = path.with_extension("json.tmp");
-    std::fs::write(&tmp, serde_json::to_vec_pretty(value)?)?;
-    std::fs::rename(&tmp, path)?;
-    Ok(())
+    profuse_tools::write_file(path, &serde_json::to_vec_pretty(value)?)
 }
 
 fn demo(out: Option<PathBuf>, seed: u64, as_json: bool, common: &Common) -> ExitCode {

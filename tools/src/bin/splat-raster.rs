@@ -263,11 +263,8 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             if let (Some(photo), Some(c)) = (&photo, out.color()) {
                 let (psnr, side) = compare_with_photo(photo, c, a, &out)?;
                 let path = out_dir.join(format!("{stem}_side_by_side.png"));
-                let tmp = temp_path(&path);
-                side.save_with_format(&tmp, image::ImageFormat::Png)
-                    .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
-                std::fs::rename(&tmp, &path)
-                    .map_err(|e| format!("cannot rename into {}: {e}", path.display()))?;
+                let (w, h) = side.dimensions();
+                encode_png(&path, side.as_raw(), w, h, image::ExtendedColorType::Rgb8)?;
                 files.insert("side_by_side".into(), json!(path));
                 report["psnr_covered"] = json!(psnr);
             }
@@ -596,37 +593,30 @@ fn compare_with_photo(
     Ok((psnr, side))
 }
 
-/// Writes a PNG atomically (temporary file next to it, then rename).
+/// Writes a PNG of the view's size atomically.
 fn write_png(
     path: &Path,
     data: &[u8],
     out: &ViewRender,
     color: image::ExtendedColorType,
 ) -> Result<(), BoxError> {
-    let tmp = temp_path(path);
-    let result = image::save_buffer_with_format(
-        &tmp,
-        data,
-        out.width() as u32,
-        out.height() as u32,
-        color,
-        image::ImageFormat::Png,
-    );
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(format!("cannot write {}: {e}", path.display()).into());
-    }
-    std::fs::rename(&tmp, path)
-        .map_err(|e| format!("cannot rename into {}: {e}", path.display()))?;
-    Ok(())
+    encode_png(path, data, out.width() as u32, out.height() as u32, color)
 }
 
-fn temp_path(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    path.with_file_name(format!(".profuse-tmp-{}-{name}", std::process::id()))
+/// Encodes a PNG and writes it atomically.
+fn encode_png(
+    path: &Path,
+    data: &[u8],
+    width: u32,
+    height: u32,
+    color: image::ExtendedColorType,
+) -> Result<(), BoxError> {
+    use image::ImageEncoder;
+    let mut bytes = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut bytes)
+        .write_image(data, width, height, color)
+        .map_err(|e| format!("cannot encode {}: {e}", path.display()))?;
+    profuse_tools::write_file(path, &bytes)
 }
 
 fn median(v: &mut [f64]) -> f64 {
