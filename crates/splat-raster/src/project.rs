@@ -40,6 +40,9 @@ pub(crate) struct Prepared {
     pub cov3d: Vec<[f64; 6]>,
     /// sigmoid(opacity logit).
     pub opacity: Vec<f64>,
+    /// ln(255 · opacity) + [`TAU_MARGIN`]: the footprint bound of [`Splat::new`], view
+    /// independent, so computed once here rather than once per view.
+    pub tau: Vec<f64>,
 }
 
 pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
@@ -106,12 +109,22 @@ pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
     let cov3d = (0..n)
         .map(|i| covariance_3d(g.log_scales[i], g.rotations[i]))
         .collect();
-    let opacity = g
+    let opacity: Vec<f64> = g
         .opacity_logits
         .iter()
         .map(|l| 1.0 / (1.0 + (-f64::from(*l)).exp()))
         .collect();
-    Ok(Prepared { cov3d, opacity })
+    let tau = opacity.iter().map(|&o| footprint_tau(o)).collect();
+    Ok(Prepared {
+        cov3d,
+        opacity,
+        tau,
+    })
+}
+
+/// ln(255 · opacity) + [`TAU_MARGIN`]: pixels with ½ dᵀ Σ⁻¹ d > tau have alpha < 1/255.
+pub(crate) fn footprint_tau(opacity: f64) -> f64 {
+    (255.0 * opacity).ln() + TAU_MARGIN
 }
 
 /// Σ = R S Sᵀ Rᵀ from log-scales and a (w, x, y, z) quaternion, normalised here.
@@ -142,6 +155,29 @@ pub fn covariance_3d(log_scales: [f32; 3], q: [f32; 4]) -> [f64; 6] {
     let m: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| r[i][j] * s[j]));
     let e = |i: usize, j: usize| m[i][0] * m[j][0] + m[i][1] * m[j][1] + m[i][2] * m[j][2];
     [e(0, 0), e(0, 1), e(0, 2), e(1, 1), e(1, 2), e(2, 2)]
+}
+
+/// `x.floor()` without a libm call (baseline x86-64 has no rounding instruction, and the
+/// call showed in profiles of million-Gaussian views). Exact: below 2^52 in magnitude the
+/// truncating casts are exact, beyond it every f64 is an integer; NaN stays NaN.
+#[inline]
+pub(crate) fn floor(x: f64) -> f64 {
+    if x.abs() < 4_503_599_627_370_496.0 {
+        let t = x as i64 as f64;
+        if t > x {
+            t - 1.0
+        } else {
+            t
+        }
+    } else {
+        x
+    }
+}
+
+/// `x.ceil()` without a libm call, exact as [`floor`].
+#[inline]
+pub(crate) fn ceil(x: f64) -> f64 {
+    -floor(-x)
 }
 
 /// Projects Gaussian `i` into `cam`; `None` when it is culled (near plane, degenerate 2D
@@ -205,12 +241,12 @@ pub(crate) fn project(
     let mid = 0.5 * (ca + cc);
     let disc = (mid * mid - det).max(0.1).sqrt();
     let lambda = (mid + disc).max(mid - disc);
-    let radius = (SIGMA_EXTENT * lambda.sqrt()).ceil();
+    let radius = ceil(SIGMA_EXTENT * lambda.sqrt());
 
     let (tiles_x, tiles_y) = cam.tiles();
     let tile_range = |c: f64, n: usize| -> Option<[u32; 2]> {
-        let lo = ((c - radius) / TILE as f64).floor();
-        let hi = ((c + radius) / TILE as f64).floor();
+        let lo = floor((c - radius) / TILE as f64);
+        let hi = floor((c + radius) / TILE as f64);
         let last = (n - 1) as f64;
         if !(hi >= 0.0 && lo <= last) {
             return None;
@@ -280,34 +316,24 @@ pub(crate) struct Splat {
 }
 
 /// Margin added to ln(255·opacity) when bounding the footprint, far above any f32 rounding
-/// of the per-pixel test; bounds computed with it are widened by one more pixel.
+/// of the per-pixel test.
 const TAU_MARGIN: f64 = 0.05;
+
+/// Slack, in pixels, of a splat's rectangle beyond the ellipse bound when the tile loop
+/// solves per-row spans: that of the spans themselves (`raster::SPAN_SLACK`), far above the
+/// f64 rounding of the bound (TAU_MARGIN adds more).
+const RECT_SLACK: f64 = 1.0 / 64.0;
 
 impl Splat {
     /// The tile-loop form of `p`, or `None` when no pixel of the image can reach alpha >= 1/255.
-    pub fn new(p: &Projected, width: u32, height: u32) -> Option<Splat> {
+    /// `tau` is [`footprint_tau`] of its opacity.
+    pub fn new(p: &Projected, tau: f64, width: u32, height: u32) -> Option<Splat> {
         let opacity = p.opacity as f32;
         // alpha = min(0.99, o · exp(power)) <= o with power <= 0: never drawn.
         if opacity.is_nan() || opacity < ALPHA_MIN {
             return None;
         }
-        let tau = (255.0 * p.opacity).ln() + TAU_MARGIN;
         let [u, v] = p.center;
-        // Axis-aligned extent of the ellipse {½ dᵀ Σ⁻¹ d <= tau}: sqrt(2 tau Σ_xx).
-        let ex = (2.0 * tau * p.cov2d[0]).sqrt();
-        let ey = (2.0 * tau * p.cov2d[2]).sqrt();
-        let span = |c: f64, e: f64, t0: u32, t1: u32, size: u32| -> Option<[u16; 2]> {
-            // Pixel centres px + 0.5 within [c − e, c + e], widened by one pixel.
-            let lo = (c - e - 0.5).ceil() - 1.0;
-            let hi = (c + e - 0.5).floor() + 1.0;
-            let lo = lo.max(f64::from(t0) * TILE as f64).max(0.0);
-            let hi = hi
-                .min(f64::from(t1) * TILE as f64 + (TILE - 1) as f64)
-                .min(f64::from(size) - 1.0);
-            (lo <= hi).then_some([lo as u16, hi as u16])
-        };
-        let [x0, x1] = span(u, ex, p.tiles[0], p.tiles[1], width)?;
-        let [y0, y1] = span(v, ey, p.tiles[2], p.tiles[3], height)?;
         let [a, b, c] = p.conic.map(|x| x as f32);
         let (x, y) = (u as f32, v as f32);
         // The per-pixel arithmetic needs finite single-precision parameters (a centre
@@ -320,6 +346,24 @@ impl Splat {
         let inv_a = 1.0 / a;
         let spans =
             a > 0.0 && det > 0.0 && det.is_finite() && two_a_tau.is_finite() && inv_a.is_finite();
+        // Axis-aligned extent of the ellipse {½ dᵀ Σ⁻¹ d <= tau}: sqrt(2 tau Σ_xx). Where the
+        // tile loop solves each row's span, the rectangle only has to be as safe as those
+        // spans (the same slack); where it visits whole rows, it is widened by a pixel.
+        let slack = if spans { RECT_SLACK } else { 1.0 };
+        let ex = (2.0 * tau * p.cov2d[0]).sqrt();
+        let ey = (2.0 * tau * p.cov2d[2]).sqrt();
+        let span = |c: f64, e: f64, t0: u32, t1: u32, size: u32| -> Option<[u16; 2]> {
+            // Pixel centres px + 0.5 within [c − e − slack, c + e + slack].
+            let lo = ceil(c - e - 0.5 - slack);
+            let hi = floor(c + e - 0.5 + slack);
+            let lo = lo.max(f64::from(t0) * TILE as f64).max(0.0);
+            let hi = hi
+                .min(f64::from(t1) * TILE as f64 + (TILE - 1) as f64)
+                .min(f64::from(size) - 1.0);
+            (lo <= hi).then_some([lo as u16, hi as u16])
+        };
+        let [x0, x1] = span(u, ex, p.tiles[0], p.tiles[1], width)?;
+        let [y0, y1] = span(v, ey, p.tiles[2], p.tiles[3], height)?;
         Some(Splat {
             x,
             y,
@@ -335,5 +379,47 @@ impl Splat {
             inv_a: if spans { inv_a } else { 0.0 },
             rect: [x0, x1, y0, y1],
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{ceil, floor};
+
+    #[test]
+    fn floor_and_ceil_equal_libm_bit_for_bit_except_the_sign_of_zero() {
+        let mut values = vec![
+            0.0,
+            0.5,
+            1.0,
+            1.5,
+            -0.5,
+            -1.0,
+            -1.5,
+            2.0f64.powi(52) - 0.5,
+            -(2.0f64.powi(52) - 0.5),
+            2.0f64.powi(52),
+            2.0f64.powi(53) + 2.0,
+            -1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::MIN_POSITIVE,
+            -f64::MIN_POSITIVE,
+        ];
+        // A deterministic spread over magnitudes and fractions.
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        for _ in 0..10_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let mag = (x >> 11) as f64 / (1u64 << 53) as f64 * 2f64.powi((x % 60) as i32);
+            values.push(if x & 1 == 0 { mag } else { -mag });
+        }
+        for v in values {
+            // -0.0 == 0.0: the sign of a zero result is irrelevant to the callers.
+            assert_eq!(floor(v), v.floor(), "floor({v:e})");
+            assert_eq!(ceil(v), v.ceil(), "ceil({v:e})");
+        }
+        assert!(floor(f64::NAN).is_nan() && ceil(f64::NAN).is_nan());
     }
 }

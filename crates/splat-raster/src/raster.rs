@@ -212,9 +212,32 @@ impl ViewRender {
     }
 }
 
+/// Gaussians projected per job of [`Rasterizer::bin`] (a power of two: the key packs the
+/// position within the chunk into the low bits).
+const PROJECT_CHUNK: usize = 1 << CHUNK_BITS;
+const CHUNK_BITS: u32 = 14;
+
+/// Sort key of a splat: its camera depth (positive, finite: the bits of a positive f32
+/// order as the value) above its position, chunk-major. Chunks cover ascending id ranges,
+/// so equal depths order by id, as the (depth, id) rule requires.
+fn depth_key(sp: &Splat, chunk: usize, index: usize) -> u64 {
+    (u64::from(sp.depth.to_bits()) << 32) | ((chunk as u64) << CHUNK_BITS) | index as u64
+}
+
+/// (chunk, index) of a [`depth_key`].
+fn key_position(key: u64) -> (usize, usize) {
+    let pos = (key & u64::from(u32::MAX)) as usize;
+    (pos >> CHUNK_BITS, pos & (PROJECT_CHUNK - 1))
+}
+
 /// Per-view binning buffers, reused between views.
 #[derive(Debug, Default)]
 struct ViewScratch {
+    /// Projected splats of each chunk of [`PROJECT_CHUNK`] Gaussians, in id order.
+    chunks: Vec<Vec<Splat>>,
+    /// [`depth_key`]s of the splats of `chunks`, sorted.
+    keys: Vec<u64>,
+    /// The splats in (depth, id) order.
     splats: Vec<Splat>,
     row_start: Vec<usize>,
     row_entries: Vec<u32>,
@@ -334,18 +357,37 @@ impl<'g> Rasterizer<'g> {
 
     /// Projects every Gaussian, sorts the survivors by (depth, id) and buckets them by
     /// tile row (each row's list stays in depth order).
+    ///
+    /// Gaussians are projected in fixed chunks into reused per-chunk buffers (no per-view
+    /// allocation, and the chunking does not depend on the thread count), the survivors
+    /// are ordered by sorting 8-byte keys (depth bits, chunk, index) rather than moving the
+    /// 64-byte splats around, and are gathered once into depth order.
     fn bin(&self, cam: &ViewCamera, s: &mut ViewScratch) {
         let campos = cam.center();
         let (w, h) = (cam.width, cam.height);
-        s.splats.clear();
-        s.splats
-            .par_extend((0..self.len()).into_par_iter().filter_map(|i| {
+        let chunks = self.len().div_ceil(PROJECT_CHUNK);
+        s.chunks.resize_with(chunks, Vec::new);
+        s.chunks.par_iter_mut().enumerate().for_each(|(c, out)| {
+            out.clear();
+            let ids = c * PROJECT_CHUNK..((c + 1) * PROJECT_CHUNK).min(self.len());
+            out.extend(ids.filter_map(|i| {
                 project(self.gaussians, &self.prep, cam, campos, i)
-                    .and_then(|p| Splat::new(&p, w, h))
+                    .and_then(|p| Splat::new(&p, self.prep.tau[i], w, h))
             }));
+        });
+        s.keys.clear();
+        for (c, out) in s.chunks.iter().enumerate() {
+            s.keys
+                .extend((0..out.len()).map(|i| depth_key(&out[i], c, i)));
+        }
         // Unique keys (ids differ), so the unstable sort is deterministic.
-        s.splats
-            .par_sort_unstable_by(|p, q| p.depth.total_cmp(&q.depth).then(p.id.cmp(&q.id)));
+        s.keys.par_sort_unstable();
+        s.splats.clear();
+        let chunks = &s.chunks;
+        s.splats.par_extend(s.keys.par_iter().map(|&key| {
+            let (c, i) = key_position(key);
+            chunks[c][i]
+        }));
 
         let (_, tiles_y) = cam.tiles();
         s.row_start.clear();
@@ -958,6 +1000,52 @@ fn write_tile(ctx: &Ctx<'_>, row: &mut RowOut<'_>, [x0, x1, y0, y1]: [usize; 4],
         }
         if let Some(tr) = row.transmittance.as_deref_mut() {
             tr[o..o + nx].copy_from_slice(t);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{depth_key, key_position, Splat, PROJECT_CHUNK};
+
+    fn splat_at(depth: f32) -> Splat {
+        Splat {
+            x: 0.0,
+            y: 0.0,
+            a: 1.0,
+            b: 0.0,
+            c: 1.0,
+            opacity: 0.5,
+            color: [0.0; 3],
+            depth,
+            id: 0,
+            two_a_tau: 1.0,
+            det: 1.0,
+            inv_a: 1.0,
+            rect: [0; 4],
+        }
+    }
+
+    #[test]
+    fn depth_keys_order_by_depth_then_chunk_then_index_and_round_trip() {
+        let last = PROJECT_CHUNK - 1;
+        let mut keys = vec![
+            (depth_key(&splat_at(2.0), 0, 5), (0, 5)),
+            (depth_key(&splat_at(0.25), 7, last), (7, last)),
+            (depth_key(&splat_at(1.0), 3, 0), (3, 0)),
+            (depth_key(&splat_at(1.0), 2, last), (2, last)),
+            (depth_key(&splat_at(1.0), 2, 4), (2, 4)),
+            (depth_key(&splat_at(1.0e30), 0, 0), (0, 0)),
+        ];
+        keys.sort_unstable();
+        let order: Vec<(usize, usize)> = keys.iter().map(|k| k.1).collect();
+        assert_eq!(
+            order,
+            [(7, last), (2, 4), (2, last), (3, 0), (0, 5), (0, 0)],
+            "depth first, equal depths by (chunk, index), i.e. by Gaussian id"
+        );
+        for (key, pos) in keys {
+            assert_eq!(key_position(key), pos);
         }
     }
 }
