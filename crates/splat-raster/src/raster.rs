@@ -39,7 +39,8 @@ pub struct RenderOptions {
     /// Final transmittance T_final, f32 [H, W].
     pub transmittance: bool,
     /// Per-pixel top-K contributors (ids u32 [H, W, K], weights f32 [H, W, K]); `None` = off.
-    /// K must be in 1..=[`MAX_TOP_K`].
+    /// K must be in 1..=[`MAX_TOP_K`]. When nothing else is requested, a pixel stops as
+    /// soon as its list is final (T <= its K-th weight): the same lists, less work.
     pub top_k: Option<usize>,
     /// Background colour added with the final transmittance.
     pub background: [f32; 3],
@@ -462,6 +463,11 @@ fn blend(cam: &ViewCamera, opts: &RenderOptions, out: &mut ViewRender) -> usize 
         height: out.height,
         tiles_x,
         k,
+        lists_only: k > 0
+            && !opts.color
+            && opts.depth == DepthMode::None
+            && !opts.alpha
+            && !opts.transmittance,
         opts,
     };
     rows.into_par_iter()
@@ -588,6 +594,9 @@ struct Ctx<'a> {
     height: usize,
     tiles_x: usize,
     k: usize,
+    /// Only the top-K lists are wanted (no colour, depth, alpha or T, as registration
+    /// renders): a pixel then stops as soon as its list is final (see `blend_span`).
+    lists_only: bool,
     opts: &'a RenderOptions,
 }
 
@@ -640,7 +649,11 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
                 w,
                 id,
             };
-            blend_tile::<true>(ctx, tile, [x0, x1, y0, y1], st, &mut out);
+            if ctx.lists_only {
+                blend_tile::<true, true>(ctx, tile, [x0, x1, y0, y1], st, &mut out);
+            } else {
+                blend_tile::<true, false>(ctx, tile, [x0, x1, y0, y1], st, &mut out);
+            }
             pad_unfilled(&mut out, x1 - x0, y1 - y0, &st.tk_n);
         } else {
             let mut none = TopKOut {
@@ -650,7 +663,7 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
                 w: &mut [],
                 id: &mut [],
             };
-            blend_tile::<false>(ctx, tile, [x0, x1, y0, y1], st, &mut none);
+            blend_tile::<false, false>(ctx, tile, [x0, x1, y0, y1], st, &mut none);
         }
         write_tile(ctx, &mut row, [x0, x1, y0, y1], st);
     }
@@ -683,7 +696,7 @@ fn pad_unfilled(out: &mut TopKOut<'_>, cols: usize, rows: usize, fill: &[u32]) {
 /// instantiations stay separate functions, which keeps the SIMD loop's register allocation
 /// independent of the caller and makes profiles readable.)
 #[inline(never)]
-fn blend_tile<const TOPK: bool>(
+fn blend_tile<const TOPK: bool, const CUTOFF: bool>(
     ctx: &Ctx<'_>,
     list: &[u32],
     [x0, x1, y0, y1]: [usize; 4],
@@ -733,7 +746,7 @@ fn blend_tile<const TOPK: bool>(
                 (cx0, cx1)
             };
             let (lo, hi) = (lo - x0, hi - x0);
-            stopped += blend_span::<TOPK>(s, x0, py - y0, lo, hi, dy, st, out);
+            stopped += blend_span::<TOPK, CUTOFF>(s, x0, py - y0, lo, hi, dy, st, out);
         }
         if stopped == live {
             break;
@@ -764,7 +777,7 @@ fn flat(v: &[f32x4]) -> &[f32] {
 /// pixels stopped.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn blend_span<const TOPK: bool>(
+fn blend_span<const TOPK: bool, const CUTOFF: bool>(
     s: &Splat,
     x0: usize,
     row: usize,
@@ -834,6 +847,15 @@ fn blend_span<const TOPK: bool>(
                     let slot = row * out.stride + out.base + (c0 + l) * out.k;
                     insert_lane(out, slot, &mut cnt[l], w[l], s.id, &mut tmin[l]);
                 }
+            }
+            if CUTOFF {
+                // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so once
+                // T <= the K-th weight of a full list (tmin > 0) nothing can enter: the
+                // pixel's list is final and it stops here.
+                let full = tmin.cmp_gt(f32x4::ZERO);
+                let settled = live & full & t.cmp_le(*tmin) & !*done;
+                *done |= settled;
+                stops += settled.move_mask().count_ones();
             }
         }
     }
