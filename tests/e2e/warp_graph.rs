@@ -85,6 +85,45 @@ fn run_on_a_tiny_synthetic_scene_writes_valid_proposals() {
     assert_eq!(p.len() as u64, r["proposals"].as_u64().unwrap());
     assert_eq!(p.extra.get("visibility").map(String::as_str), Some("both"));
     assert_eq!(p.extra.get("tau_iou").map(String::as_str), Some("0.2"));
+    // With Gaussians the masks are lifted to 3D and the extent rules run (default on).
+    assert_eq!(r["extents"], true, "{r}");
+    assert_eq!(
+        p.extra.get("extent_merge_iou").map(String::as_str),
+        Some("0.1")
+    );
+    assert!(r["extent_merges"].is_u64() && r["extent_refused_links"].is_u64());
+    // Both rules 0 = the same-view guard alone.
+    let off = dir.path().join("off.safetensors");
+    let extra: Vec<&str> = geometry
+        .iter()
+        .copied()
+        .chain(["--extent-agreement", "0", "--extent-merge-iou", "0"])
+        .collect();
+    let o = warp_graph(&scene, &off, &extra, None);
+    super::assert_succeeded(&o);
+    let r = super::json(&o);
+    assert_eq!(r["extents"], false, "{r}");
+    assert_eq!(
+        (
+            r["extent_merges"].as_u64(),
+            r["extent_refused_links"].as_u64()
+        ),
+        (Some(0), Some(0))
+    );
+    let p = Proposals::read(&off).unwrap();
+    assert_eq!(
+        p.extra.get("extent_agreement").map(String::as_str),
+        Some("none")
+    );
+    // The extents are built view-parallel: same bytes with 1 and 4 threads.
+    let (one, four) = (
+        dir.path().join("g1.safetensors"),
+        dir.path().join("g4.safetensors"),
+    );
+    for (path, t) in [(&one, "1"), (&four, "4")] {
+        super::assert_succeeded(&warp_graph(&scene, path, &geometry, Some(t)));
+    }
+    assert_eq!(std::fs::read(&one).unwrap(), std::fs::read(&four).unwrap());
 
     // Same bytes with 1 and 4 threads; without Gaussians `auto` is fwd-bwd.
     let one = dir.path().join("one.safetensors");

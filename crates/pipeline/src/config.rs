@@ -141,6 +141,19 @@ pub struct WarpGraph {
     pub fwd_bwd_tolerance: f32,
     /// Skip view pairs that lack one of their two warps.
     pub require_both_warps: bool,
+    /// Same-view guard: masks of one view joined only with this many common linked masks
+    /// (0 = off, the paper's plain connected components).
+    pub same_view_support: usize,
+    /// Extent rule 1: refuse a union whose two components disagree in 3D below this
+    /// agreement (0 = off).
+    pub extent_agreement: f64,
+    /// Extent rule 2: merge components whose padded 3D boxes have at least this IoU
+    /// (0 = off).
+    pub extent_merge_iou: f64,
+    /// Share of an extent's points trimmed on each side of each axis for its box.
+    pub extent_trim: f64,
+    /// Box padding on each side, as a share of the scene diagonal.
+    pub extent_pad: f64,
 }
 
 impl Default for WarpGraph {
@@ -158,6 +171,11 @@ impl Default for WarpGraph {
             depth_min_alpha: p.depth_min_alpha,
             fwd_bwd_tolerance: p.fwd_bwd_tolerance,
             require_both_warps: p.require_both_warps,
+            same_view_support: p.same_view_support.unwrap_or(0),
+            extent_agreement: p.extent_agreement.unwrap_or(0.0),
+            extent_merge_iou: p.extent_merge_iou.unwrap_or(0.0),
+            extent_trim: p.extent_trim,
+            extent_pad: p.extent_pad,
         }
     }
 }
@@ -203,6 +221,11 @@ impl WarpGraph {
             depth_min_alpha: self.depth_min_alpha,
             fwd_bwd_tolerance: self.fwd_bwd_tolerance,
             require_both_warps: self.require_both_warps,
+            same_view_support: (self.same_view_support > 0).then_some(self.same_view_support),
+            extent_agreement: (self.extent_agreement > 0.0).then_some(self.extent_agreement),
+            extent_merge_iou: (self.extent_merge_iou > 0.0).then_some(self.extent_merge_iou),
+            extent_trim: self.extent_trim,
+            extent_pad: self.extent_pad,
             ..warp_graph::Params::default()
         })
     }
@@ -479,6 +502,29 @@ mod tests {
             e.to_string().contains("cfg.toml") && e.to_string().contains("kay"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn warp_graph_defaults_are_the_crates_and_zero_switches_a_rule_off() {
+        let c = Config::default();
+        assert_eq!(
+            c.warp_graph.params().unwrap(),
+            warp_graph::Params::default()
+        );
+        let off = c
+            .with_overrides(&[
+                "warp_graph.extent_agreement=0".into(),
+                "warp_graph.extent_merge_iou=0.0".into(),
+                "warp_graph.same_view_support=0".into(),
+            ])
+            .unwrap()
+            .warp_graph
+            .params()
+            .unwrap();
+        assert_eq!(off.extent_agreement, None);
+        assert_eq!(off.extent_merge_iou, None);
+        assert_eq!(off.same_view_support, None);
+        assert_eq!(off.extent_trim, warp_graph::Params::default().extent_trim);
     }
 
     #[test]

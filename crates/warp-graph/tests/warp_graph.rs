@@ -975,6 +975,22 @@ fn inconsistent_inputs_are_typed_errors() {
             same_view_support: Some(0),
             ..plain()
         },
+        Params {
+            extent_agreement: Some(1.5),
+            ..plain()
+        },
+        Params {
+            extent_merge_iou: Some(f64::NAN),
+            ..plain()
+        },
+        Params {
+            extent_trim: 0.5,
+            ..plain()
+        },
+        Params {
+            extent_pad: -0.1,
+            ..plain()
+        },
     ] {
         let e = build_proposals(Inputs::new(&m, &t), &p).unwrap_err();
         assert!(matches!(e, WarpGraphError::InvalidParameter { .. }), "{e}");
@@ -1001,6 +1017,12 @@ fn proposals_record_the_parameters_and_round_trip_through_a_file() {
         ("visibility", "none"),
         ("sampling", "bilinear"),
         ("same_view_support", "1"),
+        ("extent_agreement", "0.3"),
+        ("extent_merge_iou", "0.1"),
+        ("extent_trim", "0.05"),
+        ("extent_pad", "0.01"),
+        // No Gaussians: no extents, the extent rules did not run.
+        ("extents", "false"),
     ] {
         assert_eq!(meta.get(k).map(String::as_str), Some(v), "{k}");
     }
@@ -1027,11 +1049,17 @@ fn demo_scene_proposals_score_against_the_true_objects() {
         let s =
             profuse_metrics::cluster::cluster_scores(&o.proposals.mask_proposal, &truth).unwrap();
         eprintln!(
-            "demo seed 0, visibility {}, same_view_support {:?}: ARI {:.4} purity {:.4} completeness {:.4} ({} proposals, {} masks assigned)",
-            o.report.visibility, p.same_view_support, s.ari, s.purity, s.completeness,
+            "demo seed 0, visibility {}, same_view_support {:?}, extents {:?}/{:?}: ARI {:.4} purity {:.4} completeness {:.4} ({} proposals, {} masks assigned)",
+            o.report.visibility, p.same_view_support, p.extent_agreement, p.extent_merge_iou, s.ari, s.purity, s.completeness,
             o.report.components.proposals, o.report.components.masks_assigned
         );
         (s, o)
+    };
+    // The guard alone (extent rules off).
+    let guard_only = Params {
+        extent_agreement: None,
+        extent_merge_iou: None,
+        ..Params::default()
     };
     for vis in [
         Visibility::Auto,
@@ -1039,13 +1067,29 @@ fn demo_scene_proposals_score_against_the_true_objects() {
         Visibility::FwdBwd,
         Visibility::None,
     ] {
-        let (s, _) = score(&Params {
+        let (s, o) = score(&Params {
             visibility: vis,
-            ..Params::default()
+            ..guard_only
         });
+        assert!(!o.report.extents);
         assert!(s.ari >= 0.8, "{vis:?}: {s:?}");
         assert!(s.purity >= 0.95, "{vis:?}: {s:?}");
         assert!(s.completeness >= 0.75, "{vis:?}: {s:?}");
+        // The default adds the extent rules (depth from the Gaussians whatever the
+        // visibility test): the bridge between the east and west walls is refused and
+        // fragments no warp connects are merged.
+        let (e, o) = score(&Params {
+            visibility: vis,
+            ..Params::default()
+        });
+        assert!(o.report.extents);
+        assert!(o.report.components.extent_merges > 0, "{:?}", o.report);
+        assert!(
+            e.ari >= 0.9 && e.ari > s.ari + 0.03,
+            "{vis:?}: {e:?} vs {s:?}"
+        );
+        assert!(e.purity >= 0.98, "{vis:?}: {e:?}");
+        assert!(e.completeness >= 0.89, "{vis:?}: {e:?}");
     }
     // The paper's plain components: under-segmented masks glue objects together.
     let (s, o) = score(&Params {

@@ -160,6 +160,24 @@ struct ParamArgs {
     /// Rendered depth maps kept in memory at once (LRU over views).
     #[arg(long, default_value_t = 8)]
     depth_cache_views: usize,
+    /// Extent rule 1 (needs --gaussians; only with the same-view guard): refuse a link
+    /// that unites two components of two masks or more whose 3D extents agree less than
+    /// this (the larger share of one's depth points inside the other's padded box);
+    /// 0 = off.
+    #[arg(long, default_value_t = 0.3)]
+    extent_agreement: f64,
+    /// Extent rule 2 (needs --gaussians; only with the same-view guard): after the links,
+    /// merge components whose padded 3D boxes have at least this IoU (largest first, the
+    /// same-view guard still applies); 0 = off. Both rules 0 = the guard alone.
+    #[arg(long, default_value_t = 0.1)]
+    extent_merge_iou: f64,
+    /// Share of a component's depth points left out on each side of each axis when its 3D
+    /// box is taken.
+    #[arg(long, default_value_t = 0.05)]
+    extent_trim: f64,
+    /// Padding of the 3D boxes on each side, as a share of the scene diagonal.
+    #[arg(long, default_value_t = 0.01)]
+    extent_pad: f64,
 }
 
 impl ParamArgs {
@@ -187,6 +205,10 @@ impl ParamArgs {
             require_both_warps: self.require_both_warps,
             depth_cache_views: self.depth_cache_views,
             same_view_support: (self.same_view_support > 0).then_some(self.same_view_support),
+            extent_agreement: (self.extent_agreement > 0.0).then_some(self.extent_agreement),
+            extent_merge_iou: (self.extent_merge_iou > 0.0).then_some(self.extent_merge_iou),
+            extent_trim: self.extent_trim,
+            extent_pad: self.extent_pad,
         }
     }
 }
