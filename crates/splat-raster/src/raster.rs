@@ -234,8 +234,9 @@ fn key_position(key: u64) -> (usize, usize) {
 /// Per-view binning buffers, reused between views.
 #[derive(Debug, Default)]
 struct ViewScratch {
-    /// Projected splats of each chunk of [`PROJECT_CHUNK`] Gaussians, in id order.
-    chunks: Vec<Vec<Splat>>,
+    /// Projected splats of each chunk of [`PROJECT_CHUNK`] Gaussians, in id order, with
+    /// their [`depth_key`]s (computed by the chunk's job while its splats are in cache).
+    chunks: Vec<(Vec<Splat>, Vec<u64>)>,
     /// [`depth_key`]s of the splats of `chunks`, sorted.
     keys: Vec<u64>,
     /// The splats in (depth, id) order.
@@ -367,19 +368,23 @@ impl<'g> Rasterizer<'g> {
         let campos = cam.center();
         let (w, h) = (cam.width, cam.height);
         let chunks = self.len().div_ceil(PROJECT_CHUNK);
-        s.chunks.resize_with(chunks, Vec::new);
-        s.chunks.par_iter_mut().enumerate().for_each(|(c, out)| {
-            out.clear();
-            let ids = c * PROJECT_CHUNK..((c + 1) * PROJECT_CHUNK).min(self.len());
-            out.extend(ids.filter_map(|i| {
-                project(self.gaussians, &self.prep, cam, campos, i)
-                    .and_then(|p| Splat::new(&p, self.prep.tau[i], w, h))
-            }));
-        });
+        s.chunks.resize_with(chunks, Default::default);
+        s.chunks
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(c, (out, keys))| {
+                out.clear();
+                let ids = c * PROJECT_CHUNK..((c + 1) * PROJECT_CHUNK).min(self.len());
+                out.extend(ids.filter_map(|i| {
+                    project(self.gaussians, &self.prep, cam, campos, i)
+                        .and_then(|p| Splat::new(&p, self.prep.tau[i], w, h))
+                }));
+                keys.clear();
+                keys.extend(out.iter().enumerate().map(|(i, sp)| depth_key(sp, c, i)));
+            });
         s.keys.clear();
-        for (c, out) in s.chunks.iter().enumerate() {
-            s.keys
-                .extend((0..out.len()).map(|i| depth_key(&out[i], c, i)));
+        for (_, keys) in &s.chunks {
+            s.keys.extend_from_slice(keys);
         }
         // Unique keys (ids differ), so the unstable sort is deterministic.
         s.keys.par_sort_unstable();
@@ -387,7 +392,7 @@ impl<'g> Rasterizer<'g> {
         let chunks = &s.chunks;
         s.splats.par_extend(s.keys.par_iter().map(|&key| {
             let (c, i) = key_position(key);
-            chunks[c][i]
+            chunks[c].0[i]
         }));
 
         let (_, tiles_y) = cam.tiles();
