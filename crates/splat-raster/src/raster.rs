@@ -15,6 +15,9 @@ use crate::{ALPHA_MAX, ALPHA_MIN, MAX_TOP_K, NO_GAUSSIAN, TILE, T_MIN};
 
 const TILE_PIXELS: usize = TILE * TILE;
 
+/// [`NO_GAUSSIAN`] as the f32 bit pattern the SIMD lists carry ids in.
+const NO_ID_BITS: f32x4 = f32x4::new([f32::from_bits(NO_GAUSSIAN); 4]);
+
 /// What to accumulate into the depth output.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum DepthMode {
@@ -477,7 +480,7 @@ fn blend(cam: &ViewCamera, opts: &RenderOptions, out: &mut ViewRender) -> usize 
     };
     rows.into_par_iter()
         .map_init(
-            || Pooled::take(&scratch.tiles, tiles_x),
+            || Pooled::take(&scratch.tiles, tiles_x, k),
             |st, row| {
                 let entries =
                     &scratch.row_entries[scratch.row_start[row.ty]..scratch.row_start[row.ty + 1]];
@@ -494,10 +497,10 @@ struct Pooled<'a> {
 }
 
 impl<'a> Pooled<'a> {
-    fn take(pool: &'a Mutex<Vec<TileScratch>>, tiles_x: usize) -> Self {
+    fn take(pool: &'a Mutex<Vec<TileScratch>>, tiles_x: usize, k: usize) -> Self {
         let st = pool.lock().ok().and_then(|mut p| p.pop());
         let mut st = st.unwrap_or_default();
-        st.reset(tiles_x);
+        st.reset(tiles_x, k);
         Pooled { st: Some(st), pool }
     }
 
@@ -514,11 +517,8 @@ impl Drop for Pooled<'_> {
     }
 }
 
-/// The bounded top-K lists of one tile, kept in place in the output rows of its tile row
-/// (no scratch copy): pixel (row, col) of the tile owns the K slots at
-/// `row * stride + base + col * k`, sorted by descending weight; slots past its fill count
-/// are stale until the tile ends and [`pad_unfilled`] writes padding (weight 0,
-/// [`NO_GAUSSIAN`]) there.
+/// The output slots of one tile's top-K lists: pixel (row, col) of the tile owns the K
+/// slots at `row * stride + base + col * k` of its tile row's buffers.
 struct TopKOut<'a> {
     k: usize,
     /// W · K: one image row of lists.
@@ -530,9 +530,14 @@ struct TopKOut<'a> {
 }
 
 /// Scratch of one worker, reused across tiles and views: the per-pixel blend state of one
-/// tile (structure of arrays in 4-pixel SIMD groups), the fill counts and entry thresholds
-/// of its top-K lists (the lists themselves live in the output, see [`TopKOut`]), and the
+/// tile and its top-K lists (structure of arrays in 4-pixel SIMD groups), and the
 /// row-to-tile bucketing buffers.
+///
+/// The lists are kept rank-major per group (`lw[group * K + r]` holds rank r of the
+/// group's 4 pixels), so one insertion serves every lane of a group that has a candidate
+/// with SIMD compares and blends, without per-lane branches; they start as padding
+/// (weight 0, [`NO_GAUSSIAN`]), so a list that is not full needs no fill count, and the
+/// K-th rank is the bar a newcomer must beat. They reach the output once per tile.
 #[derive(Debug, Default)]
 struct TileScratch {
     /// Transmittance (in groups of [`LANES`] pixels, row-major within the tile).
@@ -547,17 +552,21 @@ struct TileScratch {
     wsum: Vec<f32x4>,
     /// Lane mask (all bits set) once the pixel has stopped (T would fall below 1e-4).
     done: Vec<f32x4>,
-    /// Weight a new contributor must exceed to enter the pixel's top-K list (0 while the
-    /// list is not full), per pixel group.
-    tk_min: Vec<f32x4>,
-    /// Fill count of each pixel's top-K list.
-    tk_n: Vec<u32>,
+    /// K of the lists below (0 without top-K).
+    k: usize,
+    /// Top-K weights, `[group][rank]`, each lane sorted by descending weight.
+    lw: Vec<f32x4>,
+    /// Top-K Gaussian ids beside `lw`, as f32 bit patterns (only ever moved by blends).
+    lid: Vec<f32x4>,
     tile_start: Vec<usize>,
     tile_entries: Vec<u32>,
 }
 
 impl TileScratch {
-    fn reset(&mut self, tiles_x: usize) {
+    fn reset(&mut self, tiles_x: usize, k: usize) {
+        self.k = k;
+        self.lw.resize(TILE_GROUPS * k, f32x4::ZERO);
+        self.lid.resize(TILE_GROUPS * k, NO_ID_BITS);
         for v in [
             &mut self.t,
             &mut self.r,
@@ -566,11 +575,9 @@ impl TileScratch {
             &mut self.depth,
             &mut self.wsum,
             &mut self.done,
-            &mut self.tk_min,
         ] {
             v.resize(TILE_GROUPS, f32x4::ZERO);
         }
-        self.tk_n.resize(TILE_PIXELS, 0);
         self.tile_start.resize(tiles_x + 1, 0);
     }
 
@@ -587,8 +594,8 @@ impl TileScratch {
             v.fill(f32x4::ZERO);
         }
         if topk {
-            self.tk_min.fill(f32x4::ZERO);
-            self.tk_n.fill(0);
+            self.lw.fill(f32x4::ZERO);
+            self.lid.fill(NO_ID_BITS);
         }
     }
 }
@@ -641,34 +648,31 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
         let x1 = (x0 + TILE).min(ctx.width);
         let tile = &list[start[tx]..start[tx + 1]];
         let k = ctx.k;
+        let rect = [x0, x1, y0, y1];
         if let (true, Some(w), Some(id)) =
             (k > 0, row.weights.as_deref_mut(), row.ids.as_deref_mut())
         {
-            // Contributors are inserted in place in the output; only the slots left
-            // unfilled are padded afterwards (a prefill would write every slot twice).
-            let stride = ctx.width * k;
             let mut out = TopKOut {
                 k,
-                stride,
+                stride: ctx.width * k,
                 base: x0 * k,
                 w,
                 id,
             };
-            if ctx.lists_only {
-                blend_tile::<true, true>(ctx, tile, [x0, x1, y0, y1], st, &mut out);
+            if tile.is_empty() {
+                // Nothing to sort or transpose: every list is padding.
+                blend_tile::<false, false>(ctx, tile, rect, st);
+                pad_lists(&mut out, x1 - x0, y1 - y0);
             } else {
-                blend_tile::<true, false>(ctx, tile, [x0, x1, y0, y1], st, &mut out);
+                if ctx.lists_only {
+                    blend_tile::<true, true>(ctx, tile, rect, st);
+                } else {
+                    blend_tile::<true, false>(ctx, tile, rect, st);
+                }
+                write_lists(&mut out, x1 - x0, y1 - y0, st);
             }
-            pad_unfilled(&mut out, x1 - x0, y1 - y0, &st.tk_n);
         } else {
-            let mut none = TopKOut {
-                k: 0,
-                stride: 0,
-                base: 0,
-                w: &mut [],
-                id: &mut [],
-            };
-            blend_tile::<false, false>(ctx, tile, [x0, x1, y0, y1], st, &mut none);
+            blend_tile::<false, false>(ctx, tile, rect, st);
         }
         write_tile(ctx, &mut row, [x0, x1, y0, y1], st);
     }
@@ -677,20 +681,42 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
     total
 }
 
-/// Writes padding (weight 0, [`NO_GAUSSIAN`]) into the slots past each pixel's fill count
-/// `fill[row * TILE + col]` of a `cols` x `rows` tile.
-fn pad_unfilled(out: &mut TopKOut<'_>, cols: usize, rows: usize, fill: &[u32]) {
+/// Writes padding (weight 0, [`NO_GAUSSIAN`]) into every list of a `cols` x `rows` tile
+/// (one fill per tile row: its lists are adjacent in the output).
+fn pad_lists(out: &mut TopKOut<'_>, cols: usize, rows: usize) {
+    for row in 0..rows {
+        let first = row * out.stride + out.base;
+        let slots = first..first + cols * out.k;
+        if let Some(w) = out.w.get_mut(slots.clone()) {
+            w.fill(0.0);
+        }
+        if let Some(id) = out.id.get_mut(slots) {
+            id.fill(NO_GAUSSIAN);
+        }
+    }
+}
+
+/// Copies a finished tile's lists (padding included) from their group-major SIMD form into
+/// the output's per-pixel form, for the `cols` x `rows` pixels inside the image.
+fn write_lists(out: &mut TopKOut<'_>, cols: usize, rows: usize, st: &TileScratch) {
     let k = out.k;
     for row in 0..rows {
         for col in 0..cols {
-            let n = fill.get(row * TILE + col).map_or(0, |&n| n as usize);
-            if n < k {
-                let slot = row * out.stride + out.base + col * k;
-                if let Some(w) = out.w.get_mut(slot + n..slot + k) {
-                    w.fill(0.0);
+            let group = (row * ROW_GROUPS + col / LANES) * k;
+            let (Some(sw), Some(sid)) = (st.lw.get(group..group + k), st.lid.get(group..group + k))
+            else {
+                continue;
+            };
+            let slot = row * out.stride + out.base + col * k;
+            let lane = col % LANES;
+            if let Some(dw) = out.w.get_mut(slot..slot + k) {
+                for (d, s) in dw.iter_mut().zip(sw) {
+                    *d = s.as_array_ref()[lane];
                 }
-                if let Some(id) = out.id.get_mut(slot + n..slot + k) {
-                    id.fill(NO_GAUSSIAN);
+            }
+            if let Some(did) = out.id.get_mut(slot..slot + k) {
+                for (d, s) in did.iter_mut().zip(sid) {
+                    *d = s.as_array_ref()[lane].to_bits();
                 }
             }
         }
@@ -706,7 +732,6 @@ fn blend_tile<const TOPK: bool, const CUTOFF: bool>(
     list: &[u32],
     [x0, x1, y0, y1]: [usize; 4],
     st: &mut TileScratch,
-    out: &mut TopKOut<'_>,
 ) {
     st.clear_tile(TOPK);
     let live = ((x1 - x0) * (y1 - y0)) as u32;
@@ -751,7 +776,7 @@ fn blend_tile<const TOPK: bool, const CUTOFF: bool>(
                 (cx0, cx1)
             };
             let (lo, hi) = (lo - x0, hi - x0);
-            stopped += blend_span::<TOPK, CUTOFF>(s, x0, py - y0, lo, hi, dy, st, out);
+            stopped += blend_span::<TOPK, CUTOFF>(s, x0, py - y0, lo, hi, dy, st);
         }
         if stopped == live {
             break;
@@ -790,7 +815,6 @@ fn blend_span<const TOPK: bool, const CUTOFF: bool>(
     hi: usize,
     dy: f32,
     st: &mut TileScratch,
-    out: &mut TopKOut<'_>,
 ) -> u32 {
     let q = Lane {
         sx: f32x4::splat(s.x),
@@ -804,19 +828,11 @@ fn blend_span<const TOPK: bool, const CUTOFF: bool>(
         z: f32x4::splat(s.depth),
     };
     let mut stops = 0;
+    let k = st.k;
+    let id = f32x4::splat(f32::from_bits(s.id));
     for gi in lo / LANES..hi / LANES + 1 {
         let i = row * ROW_GROUPS + gi;
-        let (
-            Some(t),
-            Some(r),
-            Some(g),
-            Some(b),
-            Some(d),
-            Some(ws),
-            Some(done),
-            Some(tmin),
-            Some(cnt),
-        ) = (
+        let (Some(t), Some(r), Some(g), Some(b), Some(d), Some(ws), Some(done)) = (
             st.t.get_mut(i),
             st.r.get_mut(i),
             st.g.get_mut(i),
@@ -824,10 +840,7 @@ fn blend_span<const TOPK: bool, const CUTOFF: bool>(
             st.depth.get_mut(i),
             st.wsum.get_mut(i),
             st.done.get_mut(i),
-            st.tk_min.get_mut(i),
-            st.tk_n.get_mut(i * LANES..(i + 1) * LANES),
-        )
-        else {
+        ) else {
             continue;
         };
         let c0 = gi * LANES;
@@ -841,44 +854,64 @@ fn blend_span<const TOPK: bool, const CUTOFF: bool>(
         let (n, w) = blend_group(&q, live, px, t, r, g, b, d, ws, done);
         stops += n;
         if TOPK {
-            // Lanes whose weight beats the pixel's current K-th (0 while the list is not
-            // full); usually few, often none.
-            let mut cand = w.cmp_gt(*tmin).move_mask();
-            if cand != 0 {
-                let (w, tmin) = (w.as_array_ref(), tmin.as_array_mut());
-                while cand != 0 {
-                    let l = cand.trailing_zeros() as usize;
-                    cand &= cand - 1;
-                    let slot = row * out.stride + out.base + (c0 + l) * out.k;
-                    insert_lane(out, slot, &mut cnt[l], w[l], s.id, &mut tmin[l]);
+            let list = i * k..(i + 1) * k;
+            if let (Some(lw), Some(lid)) = (st.lw.get_mut(list.clone()), st.lid.get_mut(list)) {
+                // Lanes whose weight beats the pixel's K-th (0 while the list is not full);
+                // usually few, often none.
+                let kth = lw[k - 1];
+                let cand = w.cmp_gt(kth);
+                let kth = if cand.move_mask() != 0 {
+                    insert_group(lw, lid, cand, w, id)
+                } else {
+                    kth
+                };
+                if CUTOFF {
+                    // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so
+                    // once T <= the K-th weight of a full list (> 0) nothing can enter: the
+                    // pixel's list is final and it stops here.
+                    let full = kth.cmp_gt(f32x4::ZERO);
+                    let settled = live & full & t.cmp_le(kth) & !*done;
+                    *done |= settled;
+                    stops += settled.move_mask().count_ones();
                 }
-            }
-            if CUTOFF {
-                // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so once
-                // T <= the K-th weight of a full list (tmin > 0) nothing can enter: the
-                // pixel's list is final and it stops here.
-                let full = tmin.cmp_gt(f32x4::ZERO);
-                let settled = live & full & t.cmp_le(*tmin) & !*done;
-                *done |= settled;
-                stops += settled.move_mask().count_ones();
             }
         }
     }
     stops
 }
 
-/// Inserts (id, w) into the list starting at output slot `slot` (fill count `cnt`) and
-/// raises the pixel's entry threshold once the list is full.
+/// Inserts (w, id) into the sorted lists of the lanes in `cand` of one group (`lw[r]`,
+/// `lid[r]`: rank r of the 4 lists); returns the new K-th weights. Ranks are rewritten from
+/// the last upwards, all candidate lanes at once: rank r takes rank r − 1's entry in lanes
+/// whose newcomer sits above r, the newcomer in lanes where it sits exactly at r, and keeps
+/// its entry elsewhere; the pass stops at the first rank no lane shifts into. A newcomer
+/// goes after the entries of equal weight (strict >), so ties keep depth order, and a full
+/// list drops its last entry: the same lists as inserting one pixel at a time.
 #[inline(always)]
-fn insert_lane(out: &mut TopKOut<'_>, slot: usize, cnt: &mut u32, w: f32, id: u32, min: &mut f32) {
-    let k = out.k;
-    let list = slot..slot + k;
-    if let (Some(lw), Some(lid)) = (out.w.get_mut(list.clone()), out.id.get_mut(list)) {
-        insert_topk(lw, lid, cnt, w, id);
-        if *cnt as usize == k {
-            *min = lw[k - 1];
+fn insert_group(lw: &mut [f32x4], lid: &mut [f32x4], cand: f32x4, w: f32x4, id: f32x4) -> f32x4 {
+    let mut r = lw.len() - 1;
+    // Lanes whose newcomer belongs at rank r or above.
+    let mut at_or_above = cand & w.cmp_gt(lw[r]);
+    loop {
+        let above = if r > 0 {
+            cand & w.cmp_gt(lw[r - 1])
+        } else {
+            f32x4::ZERO
+        };
+        let (prev_w, prev_id) = if r > 0 {
+            (lw[r - 1], lid[r - 1])
+        } else {
+            (lw[r], lid[r])
+        };
+        lw[r] = above.blend(prev_w, at_or_above.blend(w, lw[r]));
+        lid[r] = above.blend(prev_id, at_or_above.blend(id, lid[r]));
+        if r == 0 || above.move_mask() == 0 {
+            break;
         }
+        at_or_above = above;
+        r -= 1;
     }
+    lw[lw.len() - 1]
 }
 
 /// Pixel-centre offsets of the lanes: lane l of a group starting at column c has its centre
@@ -957,30 +990,6 @@ fn blend_group(
     let stop = ok & low;
     *done |= stop;
     (stop.move_mask().count_ones(), w)
-}
-
-/// Inserts (id, w) into a pixel's list sorted by descending weight; equal weights keep the
-/// earlier (nearer) entry first, so a later one goes after them, or is dropped when full.
-#[inline(always)]
-fn insert_topk(ws: &mut [f32], ids: &mut [u32], n: &mut u32, w: f32, id: u32) {
-    let k = ws.len();
-    let len = *n as usize;
-    let mut j = if len == k {
-        if w <= ws[k - 1] {
-            return;
-        }
-        k - 1
-    } else {
-        *n += 1;
-        len
-    };
-    while j > 0 && ws[j - 1] < w {
-        ws[j] = ws[j - 1];
-        ids[j] = ids[j - 1];
-        j -= 1;
-    }
-    ws[j] = w;
-    ids[j] = id;
 }
 
 /// Copies a finished tile into the tile row's output slices.
