@@ -552,8 +552,6 @@ struct TileScratch {
     wsum: Vec<f32x4>,
     /// Lane mask (all bits set) once the pixel has stopped (T would fall below 1e-4).
     done: Vec<f32x4>,
-    /// K of the lists below (0 without top-K).
-    k: usize,
     /// Top-K weights, `[group][rank]`, each lane sorted by descending weight.
     lw: Vec<f32x4>,
     /// Top-K Gaussian ids beside `lw`, as f32 bit patterns (only ever moved by blends).
@@ -564,7 +562,6 @@ struct TileScratch {
 
 impl TileScratch {
     fn reset(&mut self, tiles_x: usize, k: usize) {
-        self.k = k;
         self.lw.resize(TILE_GROUPS * k, f32x4::ZERO);
         self.lid.resize(TILE_GROUPS * k, NO_ID_BITS);
         for v in [
@@ -674,7 +671,7 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
         } else {
             blend_tile::<false, false>(ctx, tile, rect, st);
         }
-        write_tile(ctx, &mut row, [x0, x1, y0, y1], st);
+        write_tile(ctx, &mut row, rect, st);
     }
     st.tile_start = start;
     st.tile_entries = list;
@@ -828,7 +825,8 @@ fn blend_span<const TOPK: bool, const CUTOFF: bool>(
         z: f32x4::splat(s.depth),
     };
     let mut stops = 0;
-    let k = st.k;
+    // K of the lists (TILE_GROUPS groups of K ranks; 0 without top-K).
+    let k = st.lw.len() / TILE_GROUPS;
     let id = f32x4::splat(f32::from_bits(s.id));
     for gi in lo / LANES..hi / LANES + 1 {
         let i = row * ROW_GROUPS + gi;
