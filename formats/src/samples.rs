@@ -373,7 +373,7 @@ pub fn rewrite_header(
     let mut text = serde_json::to_string(&Value::Object(header))
         .unwrap_or_default()
         .into_bytes();
-    while (8 + text.len()) % 8 != 0 {
+    while !(8 + text.len()).is_multiple_of(8) {
         text.push(b' ');
     }
     let mut out = (text.len() as u64).to_le_bytes().to_vec();

@@ -382,7 +382,7 @@ impl Accumulator {
         if hits.ids.len() != pixels * hits.k
             || hits.weights.len() != pixels * hits.k
             || hits.width == 0
-            || pixels % hits.width != 0
+            || !pixels.is_multiple_of(hits.width)
         {
             return Err(format!(
                 "view {view}: {} top-K ids and {} weights for {pixels} mask pixels with K = {}",

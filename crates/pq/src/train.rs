@@ -61,7 +61,7 @@ pub fn train_vectors(
     params: &TrainParams,
 ) -> Result<Codebook, PqError> {
     check_params(dim, params)?;
-    if vectors.len() % dim != 0 {
+    if !vectors.len().is_multiple_of(dim) {
         return Err(PqError::FeatureDim {
             got: vectors.len() % dim,
             expected: dim,
@@ -80,7 +80,7 @@ pub fn train_vectors(
 }
 
 fn check_params(dim: usize, params: &TrainParams) -> Result<(), PqError> {
-    if params.m == 0 || dim == 0 || dim % params.m != 0 {
+    if params.m == 0 || dim == 0 || !dim.is_multiple_of(params.m) {
         return Err(PqError::DimNotDivisible { dim, m: params.m });
     }
     if params.sample < KSUB {

@@ -1161,7 +1161,7 @@ fn scannet_npy_real_scene_matches_the_arrays() {
 fn npy_bytes(major: u8, dict: &str, data: &[u8]) -> Vec<u8> {
     let mut header = dict.to_string();
     let fixed = if major == 1 { 10 } else { 12 };
-    while (fixed + header.len() + 1) % 64 != 0 {
+    while !(fixed + header.len() + 1).is_multiple_of(64) {
         header.push(' ');
     }
     header.push('\n');

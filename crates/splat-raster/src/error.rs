@@ -64,6 +64,11 @@ pub enum RasterError {
         expected: usize,
     },
     /// A camera cannot be used (missing rows, non-finite or non-positive intrinsics, ...).
+    #[error("this CPU cannot run the {simd} SIMD blend")]
+    SimdUnsupported {
+        /// The SIMD width asked for.
+        simd: &'static str,
+    },
     #[error("camera of view {view}: {reason}")]
     BadCamera {
         /// The view.

@@ -108,11 +108,12 @@ pub mod math;
 mod project;
 mod raster;
 pub mod sh;
+mod simd;
 
 pub use camera::ViewCamera;
 pub use error::{RasterError, Result};
 pub use project::{covariance_3d, Projected};
-pub use raster::{DepthMode, Rasterizer, RenderOptions, RenderStats, ViewRender};
+pub use raster::{DepthMode, Rasterizer, RenderOptions, RenderStats, Simd, ViewRender};
 /// Re-exported so callers can size the thread pool (`rayon::ThreadPoolBuilder`) with the
 /// rayon this crate renders on.
 pub use rayon;

@@ -5,18 +5,17 @@ use std::sync::Mutex;
 use profuse_formats::{Cameras, Gaussians};
 use rayon::prelude::*;
 
-use wide::{f32x4, CmpGe, CmpGt, CmpLe, CmpLt};
+use wide::f32x4;
 
 use crate::camera::ViewCamera;
 use crate::error::{RasterError, Result};
-use crate::math::exp4;
 use crate::project::{prepare, project, Prepared, Projected, Splat};
+#[cfg(target_arch = "x86_64")]
+use crate::simd::avx512::F32x16;
+use crate::simd::{Lanes, Level};
 use crate::{ALPHA_MAX, ALPHA_MIN, MAX_TOP_K, NO_GAUSSIAN, TILE, T_MIN};
 
 const TILE_PIXELS: usize = TILE * TILE;
-
-/// [`NO_GAUSSIAN`] as the f32 bit pattern the SIMD lists carry ids in.
-const NO_ID_BITS: f32x4 = f32x4::new([f32::from_bits(NO_GAUSSIAN); 4]);
 
 /// What to accumulate into the depth output.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -255,6 +254,28 @@ struct ViewScratch {
 pub struct Rasterizer<'g> {
     gaussians: &'g Gaussians,
     prep: Prepared,
+    level: Level,
+}
+
+/// The SIMD width of the tile blend. Every choice renders the same bytes (the lanes perform
+/// the same IEEE operations in the same order); the choice exists for benchmarks and tests.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Simd {
+    /// 4 lanes of `wide::f32x4` (SSE2 on x86-64, NEON on aarch64): runs everywhere.
+    Portable,
+    /// 16 lanes (a whole tile row per group) with AVX-512 F + DQ, chosen at run time on
+    /// x86-64 CPUs that have them.
+    Avx512,
+}
+
+impl Simd {
+    /// Lower-case name (`portable`, `avx512`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Simd::Portable => "portable",
+            Simd::Avx512 => "avx512",
+        }
+    }
 }
 
 impl<'g> Rasterizer<'g> {
@@ -264,7 +285,31 @@ impl<'g> Rasterizer<'g> {
         Ok(Rasterizer {
             gaussians,
             prep: prepare(gaussians)?,
+            level: Level::detect(),
         })
+    }
+
+    /// The SIMD width in use: the widest this CPU runs unless [`Rasterizer::set_simd`]
+    /// chose another.
+    pub fn simd(&self) -> Simd {
+        match self.level {
+            Level::Portable => Simd::Portable,
+            #[cfg(target_arch = "x86_64")]
+            Level::Avx512 => Simd::Avx512,
+        }
+    }
+
+    /// Chooses the SIMD width; an error (and no change) if this CPU cannot run it.
+    pub fn set_simd(&mut self, simd: Simd) -> Result<()> {
+        self.level = match simd {
+            Simd::Portable => Level::Portable,
+            Simd::Avx512 => match Level::detect() {
+                #[cfg(target_arch = "x86_64")]
+                Level::Avx512 => Level::Avx512,
+                _ => return Err(RasterError::SimdUnsupported { simd: simd.name() }),
+            },
+        };
+        Ok(())
     }
 
     /// The Gaussians.
@@ -332,7 +377,7 @@ impl<'g> Rasterizer<'g> {
             tile_pairs: 0,
         };
         out.stats = stats;
-        let pairs = blend(cam, opts, out);
+        let pairs = blend(cam, opts, self.level, out);
         out.stats.tile_pairs = pairs;
         Ok(())
     }
@@ -443,7 +488,7 @@ fn row_chunks<T>(buf: &mut [T], row_len: usize, rows: usize) -> Vec<Option<&mut 
 
 /// Rasterises every tile of the view in parallel over tile rows; returns the number of
 /// (tile, Gaussian) pairs.
-fn blend(cam: &ViewCamera, opts: &RenderOptions, out: &mut ViewRender) -> usize {
+fn blend(cam: &ViewCamera, opts: &RenderOptions, level: Level, out: &mut ViewRender) -> usize {
     let (tiles_x, tiles_y) = cam.tiles();
     let w = out.width;
     let k = opts.top_k.unwrap_or(0);
@@ -477,6 +522,7 @@ fn blend(cam: &ViewCamera, opts: &RenderOptions, out: &mut ViewRender) -> usize 
             && !opts.alpha
             && !opts.transmittance,
         opts,
+        level,
     };
     rows.into_par_iter()
         .map_init(
@@ -529,70 +575,100 @@ struct TopKOut<'a> {
     id: &'a mut [u32],
 }
 
+/// One 64-byte line of f32 lanes: the scratch arrays are built from these so that every
+/// blend group (4 or 16 lanes) sits inside one cache line.
+#[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C, align(64))]
+struct Line([f32; 16]);
+
+const LINE: usize = 16;
+
+/// One value per pixel of a tile, row-major.
+type PixelLines = [Line; PIXEL_LINES];
+
+/// A tile's per-pixel values as plain floats (a fixed length, so that one range check of a
+/// group's offset serves every array).
+fn pixels_mut(v: &mut PixelLines) -> &mut [f32; TILE_PIXELS] {
+    bytemuck::cast_mut(v)
+}
+
+fn pixels(v: &PixelLines) -> &[f32; TILE_PIXELS] {
+    bytemuck::cast_ref(v)
+}
+
+fn flat(v: &[Line]) -> &[f32] {
+    bytemuck::cast_slice(v)
+}
+
+fn flat_mut(v: &mut [Line]) -> &mut [f32] {
+    bytemuck::cast_slice_mut(v)
+}
+
 /// Scratch of one worker, reused across tiles and views: the per-pixel blend state of one
-/// tile and its top-K lists (structure of arrays in 4-pixel SIMD groups), and the
-/// row-to-tile bucketing buffers.
+/// tile and its top-K lists (structure of arrays in SIMD groups of N pixels: 4 with the
+/// portable lanes, a whole 16-pixel tile row with AVX-512), and the row-to-tile bucketing
+/// buffers.
 ///
-/// The lists are kept rank-major per group (`lw[group * K + r]` holds rank r of the
-/// group's 4 pixels), so one insertion serves every lane of a group that has a candidate
-/// with SIMD compares and blends, without per-lane branches; they start as padding
-/// (weight 0, [`NO_GAUSSIAN`]), so a list that is not full needs no fill count, and the
-/// K-th rank is the bar a newcomer must beat. They reach the output once per tile.
+/// The per-pixel arrays are row-major over the tile's pixels. The lists are rank-major per
+/// group (`lw[(group * K + r) * N + lane]` holds rank r of the group's pixel `lane`), so
+/// one insertion serves every lane of a group that has a candidate with SIMD compares and
+/// blends, without per-lane branches; they start as padding (weight 0, [`NO_GAUSSIAN`]),
+/// so a list that is not full needs no fill count, and the K-th rank is the bar a newcomer
+/// must beat. They reach the output once per tile.
 #[derive(Debug, Default)]
 struct TileScratch {
-    /// Transmittance (in groups of [`LANES`] pixels, row-major within the tile).
-    t: Vec<f32x4>,
+    /// Transmittance.
+    t: PixelLines,
     /// Σ ω c per channel.
-    r: Vec<f32x4>,
-    g: Vec<f32x4>,
-    b: Vec<f32x4>,
+    r: PixelLines,
+    g: PixelLines,
+    b: PixelLines,
     /// Σ ω z.
-    depth: Vec<f32x4>,
+    depth: PixelLines,
     /// Σ ω.
-    wsum: Vec<f32x4>,
-    /// Lane mask (all bits set) once the pixel has stopped (T would fall below 1e-4).
-    done: Vec<f32x4>,
-    /// Top-K weights, `[group][rank]`, each lane sorted by descending weight.
-    lw: Vec<f32x4>,
+    wsum: PixelLines,
+    /// All bits set once the pixel has stopped (T would fall below 1e-4, or its list is
+    /// final).
+    done: PixelLines,
+    /// Top-K weights, each list sorted by descending weight.
+    lw: Vec<Line>,
     /// Top-K Gaussian ids beside `lw`, as f32 bit patterns (only ever moved by blends).
-    lid: Vec<f32x4>,
+    lid: Vec<Line>,
+    /// K of the lists.
+    k: usize,
     tile_start: Vec<usize>,
     tile_entries: Vec<u32>,
 }
 
+const PIXEL_LINES: usize = TILE_PIXELS / LINE;
+const NO_ID_LINE: Line = Line([f32::from_bits(NO_GAUSSIAN); LINE]);
+const ZERO_LINE: Line = Line([0.0; LINE]);
+
 impl TileScratch {
     fn reset(&mut self, tiles_x: usize, k: usize) {
-        self.lw.resize(TILE_GROUPS * k, f32x4::ZERO);
-        self.lid.resize(TILE_GROUPS * k, NO_ID_BITS);
-        for v in [
-            &mut self.t,
-            &mut self.r,
-            &mut self.g,
-            &mut self.b,
-            &mut self.depth,
-            &mut self.wsum,
-            &mut self.done,
-        ] {
-            v.resize(TILE_GROUPS, f32x4::ZERO);
-        }
+        self.k = k;
+        self.lw.resize(PIXEL_LINES * k, ZERO_LINE);
+        self.lid.resize(PIXEL_LINES * k, NO_ID_LINE);
         self.tile_start.resize(tiles_x + 1, 0);
     }
 
-    fn clear_tile(&mut self, topk: bool) {
-        self.t.fill(f32x4::ONE);
-        for v in [
-            &mut self.r,
-            &mut self.g,
-            &mut self.b,
-            &mut self.depth,
-            &mut self.wsum,
-            &mut self.done,
-        ] {
-            v.fill(f32x4::ZERO);
+    fn clear_tile(&mut self, topk: bool, shade: bool) {
+        self.t.fill(Line([1.0; LINE]));
+        self.done.fill(ZERO_LINE);
+        if shade {
+            for v in [
+                &mut self.r,
+                &mut self.g,
+                &mut self.b,
+                &mut self.depth,
+                &mut self.wsum,
+            ] {
+                v.fill(ZERO_LINE);
+            }
         }
         if topk {
-            self.lw.fill(f32x4::ZERO);
-            self.lid.fill(NO_ID_BITS);
+            self.lw.fill(ZERO_LINE);
+            self.lid.fill(NO_ID_LINE);
         }
     }
 }
@@ -607,6 +683,7 @@ struct Ctx<'a> {
     /// renders): a pixel then stops as soon as its list is final (see `blend_span`).
     lists_only: bool,
     opts: &'a RenderOptions,
+    level: Level,
 }
 
 /// Renders the tiles of one tile row; returns its (tile, Gaussian) pair count.
@@ -617,8 +694,12 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
     let mut list = std::mem::take(&mut st.tile_entries);
     start.clear();
     start.resize(tiles_x + 1, 0);
-    for &e in entries {
-        let r = ctx.splats[e as usize].rect;
+    let rects = || {
+        entries
+            .iter()
+            .filter_map(|&e| Some((e, ctx.splats.get(e as usize)?.rect)))
+    };
+    for (_, r) in rects() {
         for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
             start[tx + 1] += 1;
         }
@@ -630,13 +711,13 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
     list.clear();
     list.resize(total, 0);
     let mut fill = start.clone();
-    for &e in entries {
-        let r = ctx.splats[e as usize].rect;
+    for (e, r) in rects() {
         for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
             list[fill[tx]] = e;
             fill[tx] += 1;
         }
     }
+    let splats = ctx.splats;
 
     let y0 = row.ty * TILE;
     let y1 = (y0 + TILE).min(ctx.height); // exclusive
@@ -658,18 +739,21 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
             };
             if tile.is_empty() {
                 // Nothing to sort or transpose: every list is padding.
-                blend_tile::<false, false>(ctx, tile, rect, st);
+                blend_tile_at::<false, false>(ctx, splats, tile, rect, st);
                 pad_lists(&mut out, x1 - x0, y1 - y0);
             } else {
                 if ctx.lists_only {
-                    blend_tile::<true, true>(ctx, tile, rect, st);
+                    blend_tile_at::<true, true>(ctx, splats, tile, rect, st);
                 } else {
-                    blend_tile::<true, false>(ctx, tile, rect, st);
+                    blend_tile_at::<true, false>(ctx, splats, tile, rect, st);
                 }
-                write_lists(&mut out, x1 - x0, y1 - y0, st);
+                match ctx.level.lanes() {
+                    4 => write_lists::<4>(&mut out, x1 - x0, y1 - y0, st),
+                    _ => write_lists::<16>(&mut out, x1 - x0, y1 - y0, st),
+                }
             }
         } else {
-            blend_tile::<false, false>(ctx, tile, rect, st);
+            blend_tile_at::<false, false>(ctx, splats, tile, rect, st);
         }
         write_tile(ctx, &mut row, rect, st);
     }
@@ -693,65 +777,139 @@ fn pad_lists(out: &mut TopKOut<'_>, cols: usize, rows: usize) {
     }
 }
 
-/// Copies a finished tile's lists (padding included) from their group-major SIMD form into
-/// the output's per-pixel form, for the `cols` x `rows` pixels inside the image.
-fn write_lists(out: &mut TopKOut<'_>, cols: usize, rows: usize, st: &TileScratch) {
+/// Copies a finished tile's lists (padding included) from their rank-major SIMD form in
+/// groups of `N` lanes into the output's per-pixel form, for the `cols` x `rows` pixels
+/// inside the image.
+fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, st: &TileScratch) {
     let k = out.k;
+    let (lw, lid) = (flat(&st.lw), flat(&st.lid));
     for row in 0..rows {
         for col in 0..cols {
-            let group = (row * ROW_GROUPS + col / LANES) * k;
-            let (Some(sw), Some(sid)) = (st.lw.get(group..group + k), st.lid.get(group..group + k))
-            else {
+            let group = row * (TILE / N) + col / N;
+            let first = group * k * N + col % N;
+            let (Some(sw), Some(sid)) = (lw.get(first..), lid.get(first..)) else {
                 continue;
             };
             let slot = row * out.stride + out.base + col * k;
-            let lane = col % LANES;
             if let Some(dw) = out.w.get_mut(slot..slot + k) {
-                for (d, s) in dw.iter_mut().zip(sw) {
-                    *d = s.as_array_ref()[lane];
+                for (d, s) in dw.iter_mut().zip(sw.iter().step_by(N)) {
+                    *d = *s;
                 }
             }
             if let Some(did) = out.id.get_mut(slot..slot + k) {
-                for (d, s) in did.iter_mut().zip(sid) {
-                    *d = s.as_array_ref()[lane].to_bits();
+                for (d, s) in did.iter_mut().zip(sid.iter().step_by(N)) {
+                    *d = s.to_bits();
                 }
             }
         }
     }
 }
 
-/// Front-to-back blend of one tile's depth-sorted splats. (Not inlined: the two
-/// instantiations stay separate functions, which keeps the SIMD loop's register allocation
-/// independent of the caller and makes profiles readable.)
-#[inline(never)]
-fn blend_tile<const TOPK: bool, const CUTOFF: bool>(
+/// [`blend_tile`] with the lane type of `ctx.level`.
+#[allow(unsafe_code)]
+fn blend_tile_at<const TOPK: bool, const CUTOFF: bool>(
     ctx: &Ctx<'_>,
+    splats: &[Splat],
+    list: &[u32],
+    rect: [usize; 4],
+    st: &mut TileScratch,
+) {
+    match ctx.level {
+        Level::Portable => blend_tile_portable::<TOPK, CUTOFF>(splats, list, rect, st),
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Level::Avx512` is only ever chosen after the CPU was found to have
+        // AVX-512 F and DQ (`Level::detect`, `Rasterizer::set_simd`).
+        Level::Avx512 => unsafe { blend_tile_avx512::<TOPK, CUTOFF>(splats, list, rect, st) },
+    }
+}
+
+/// The portable instantiation. (Not inlined: each instantiation stays a separate function,
+/// which keeps the SIMD loop's register allocation independent of the caller and makes
+/// profiles readable.)
+#[inline(never)]
+fn blend_tile_portable<const TOPK: bool, const CUTOFF: bool>(
+    splats: &[Splat],
+    list: &[u32],
+    rect: [usize; 4],
+    st: &mut TileScratch,
+) {
+    blend_tile::<f32x4, TOPK, CUTOFF>(splats, list, rect, st);
+}
+
+/// The AVX-512 instantiation: compiled for those features, so the 16-lane operations
+/// inline into it.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq")]
+fn blend_tile_avx512<const TOPK: bool, const CUTOFF: bool>(
+    splats: &[Splat],
+    list: &[u32],
+    rect: [usize; 4],
+    st: &mut TileScratch,
+) {
+    blend_tile::<F32x16, TOPK, CUTOFF>(splats, list, rect, st);
+}
+
+/// The flat views of one tile's scratch that the blend works on.
+struct TileState<'a> {
+    t: &'a mut [f32; TILE_PIXELS],
+    r: &'a mut [f32; TILE_PIXELS],
+    g: &'a mut [f32; TILE_PIXELS],
+    b: &'a mut [f32; TILE_PIXELS],
+    depth: &'a mut [f32; TILE_PIXELS],
+    wsum: &'a mut [f32; TILE_PIXELS],
+    done: &'a mut [f32; TILE_PIXELS],
+    lw: &'a mut [f32],
+    lid: &'a mut [f32],
+    k: usize,
+}
+
+/// Front-to-back blend of one tile's depth-sorted splats.
+#[inline(always)]
+fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
+    splats: &[Splat],
     list: &[u32],
     [x0, x1, y0, y1]: [usize; 4],
     st: &mut TileScratch,
 ) {
-    st.clear_tile(TOPK);
+    // Lists-only renders need no colour, depth or weight sums.
+    let shade = !CUTOFF;
+    st.clear_tile(TOPK, shade);
+    let mut s = TileState {
+        t: pixels_mut(&mut st.t),
+        r: pixels_mut(&mut st.r),
+        g: pixels_mut(&mut st.g),
+        b: pixels_mut(&mut st.b),
+        depth: pixels_mut(&mut st.depth),
+        wsum: pixels_mut(&mut st.wsum),
+        done: pixels_mut(&mut st.done),
+        lw: flat_mut(&mut st.lw),
+        lid: flat_mut(&mut st.lid),
+        k: st.k,
+    };
     let live = ((x1 - x0) * (y1 - y0)) as u32;
     let mut stopped = 0u32;
     for &e in list {
-        let s = &ctx.splats[e as usize];
-        let [rx0, rx1, ry0, ry1] = s.rect.map(usize::from);
+        let Some(sp) = splats.get(e as usize) else {
+            continue;
+        };
+        let [rx0, rx1, ry0, ry1] = sp.rect.map(usize::from);
         let (cx0, cx1) = (rx0.max(x0), rx1.min(x1 - 1));
         let (cy0, cy1) = (ry0.max(y0), ry1.min(y1 - 1));
         if cx0 > cx1 || cy0 > cy1 {
             continue;
         }
+        let q = Lane::<V>::new(sp);
         for py in cy0..cy1 + 1 {
-            let dy = s.y - (py as f32 + 0.5);
-            let (lo, hi) = if s.inv_a > 0.0 {
+            let dy = sp.y - (py as f32 + 0.5);
+            let (lo, hi) = if sp.inv_a > 0.0 {
                 // Pixels of this row with ½ dᵀ C d <= tau (tau has a margin, see `Splat`):
                 // solve the quadratic in dx, widen by SPAN_SLACK for rounding.
-                let disc = s.two_a_tau - s.det * dy * dy;
+                let disc = sp.two_a_tau - sp.det * dy * dy;
                 if disc.is_nan() || disc < 0.0 {
                     continue;
                 }
-                let half = disc.sqrt() * s.inv_a;
-                let mid = s.x - 0.5 + s.b * dy * s.inv_a;
+                let half = disc.sqrt() * sp.inv_a;
+                let mid = sp.x - 0.5 + sp.b * dy * sp.inv_a;
                 let (lo_f, hi_f) = (mid - half - SPAN_SLACK, mid + half + SPAN_SLACK);
                 // ceil and floor without libm calls (the bounds are within [cx0, cx1] here,
                 // so the casts are exact truncations of small non-negative values).
@@ -773,7 +931,8 @@ fn blend_tile<const TOPK: bool, const CUTOFF: bool>(
                 (cx0, cx1)
             };
             let (lo, hi) = (lo - x0, hi - x0);
-            stopped += blend_span::<TOPK, CUTOFF>(s, x0, py - y0, lo, hi, dy, st);
+            stopped +=
+                blend_span::<V, TOPK, CUTOFF>(&q, sp.c * dy * dy, dy, x0, py - y0, lo, hi, &mut s);
         }
         if stopped == live {
             break;
@@ -785,81 +944,56 @@ fn blend_tile<const TOPK: bool, const CUTOFF: bool>(
 /// the f32 rounding of those bounds (the exponent margin of `Splat::two_a_tau` adds more).
 const SPAN_SLACK: f32 = 1.0 / 64.0;
 
-/// Pixels per SIMD group of the blend (SSE2 width; a tile row is 4 groups).
-const LANES: usize = 4;
-/// Groups per tile row.
-const ROW_GROUPS: usize = TILE / LANES;
-/// Groups per tile.
-const TILE_GROUPS: usize = TILE_PIXELS / LANES;
-
-/// The pixels of a group, as plain floats.
-fn flat(v: &[f32x4]) -> &[f32] {
-    bytemuck::cast_slice(v)
-}
-
 /// One splat over the pixels `lo..=hi` (tile-local columns) of tile row `row`, whose first
-/// column is image column `x0`: INRIA's per-pixel step on whole 4-pixel groups (lanes
+/// column is image column `x0`: INRIA's per-pixel step on whole groups of N pixels (lanes
 /// outside `lo..=hi` masked off, groups whose pixels have all stopped skipped). With `TOPK`,
 /// pixels whose weight beats their list's K-th enter their top-K list. Returns how many
 /// pixels stopped.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn blend_span<const TOPK: bool, const CUTOFF: bool>(
-    s: &Splat,
+fn blend_span<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
+    q: &Lane<V>,
+    cdy: f32,
+    dy: f32,
     x0: usize,
     row: usize,
     lo: usize,
     hi: usize,
-    dy: f32,
-    st: &mut TileScratch,
+    s: &mut TileState<'_>,
 ) -> u32 {
-    let q = Lane {
-        sx: f32x4::splat(s.x),
-        a: f32x4::splat(s.a),
-        b: f32x4::splat(s.b),
-        // c·dy·dy rounds exactly as inside the scalar power expression.
-        cdy: f32x4::splat(s.c * dy * dy),
-        dy: f32x4::splat(dy),
-        o: f32x4::splat(s.opacity),
-        color: s.color.map(f32x4::splat),
-        z: f32x4::splat(s.depth),
-    };
+    let n = V::N;
+    // c·dy·dy rounds exactly as inside the scalar power expression.
+    let (cdy, dy) = (V::splat(cdy), V::splat(dy));
     let mut stops = 0;
-    // K of the lists (TILE_GROUPS groups of K ranks; 0 without top-K).
-    let k = st.lw.len() / TILE_GROUPS;
-    let id = f32x4::splat(f32::from_bits(s.id));
-    for gi in lo / LANES..hi / LANES + 1 {
-        let i = row * ROW_GROUPS + gi;
-        let (Some(t), Some(r), Some(g), Some(b), Some(d), Some(ws), Some(done)) = (
-            st.t.get_mut(i),
-            st.r.get_mut(i),
-            st.g.get_mut(i),
-            st.b.get_mut(i),
-            st.depth.get_mut(i),
-            st.wsum.get_mut(i),
-            st.done.get_mut(i),
-        ) else {
+    let k = s.k;
+    for gi in lo / n..hi / n + 1 {
+        // First pixel of the group in the tile's row-major pixel order.
+        let at = row * TILE + gi * n;
+        if at + n > TILE_PIXELS {
+            // Never: the check lets the compiler drop every range check of the group below.
             continue;
-        };
-        let c0 = gi * LANES;
-        let valid = LANE_VALID[(lo.max(c0) - c0) * LANES + (hi.min(c0 + LANES - 1) - c0)];
-        let live = valid & !*done;
-        if live.move_mask() == 0 {
+        }
+        let done = V::load_mask(&s.done[at..at + n]);
+        let c0 = gi * n;
+        let valid = V::span(lo.max(c0) - c0, hi.min(c0 + n - 1) - c0);
+        let live = valid & !done;
+        if V::bits(live) == 0 {
             // Every pixel of the group has stopped or lies outside the span.
             continue;
         }
-        let px = f32x4::splat((x0 + c0) as f32) + LANE_CENTRE;
-        let (n, w) = blend_group(&q, live, px, t, r, g, b, d, ws, done);
-        stops += n;
+        let px = V::splat((x0 + c0) as f32) + V::centres();
+        let (stop, w, t) = blend_group::<V>(q, cdy, dy, live, px, at, !CUTOFF, s);
+        let mut done = done | stop;
+        stops += V::bits(stop).count_ones();
         if TOPK {
-            let list = i * k..(i + 1) * k;
-            if let (Some(lw), Some(lid)) = (st.lw.get_mut(list.clone()), st.lid.get_mut(list)) {
+            let list = at * k..(at + n) * k;
+            if let (Some(lw), Some(lid)) = (s.lw.get_mut(list.clone()), s.lid.get_mut(list)) {
                 // Lanes whose weight beats the pixel's K-th (0 while the list is not full);
                 // usually few, often none.
-                let kth = lw[k - 1];
-                let cand = w.cmp_gt(kth);
-                let kth = if cand.move_mask() != 0 {
-                    insert_group(lw, lid, cand, w, id)
+                let kth = V::load(&lw[(k - 1) * n..]);
+                let cand = w.gt(kth);
+                let kth = if V::bits(cand) != 0 {
+                    insert_group::<V>(lw, lid, k, cand, w, q.id)
                 } else {
                     kth
                 };
@@ -867,127 +1001,132 @@ fn blend_span<const TOPK: bool, const CUTOFF: bool>(
                     // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so
                     // once T <= the K-th weight of a full list (> 0) nothing can enter: the
                     // pixel's list is final and it stops here.
-                    let full = kth.cmp_gt(f32x4::ZERO);
-                    let settled = live & full & t.cmp_le(kth) & !*done;
-                    *done |= settled;
-                    stops += settled.move_mask().count_ones();
+                    let full = kth.gt(V::splat(0.0));
+                    let settled = live & full & t.le(kth) & !done;
+                    done = done | settled;
+                    stops += V::bits(settled).count_ones();
                 }
             }
         }
+        V::store_mask(done, &mut s.done[at..at + n]);
     }
     stops
 }
 
-/// Inserts (w, id) into the sorted lists of the lanes in `cand` of one group (`lw[r]`,
-/// `lid[r]`: rank r of the 4 lists); returns the new K-th weights. Ranks are rewritten from
-/// the last upwards, all candidate lanes at once: rank r takes rank r − 1's entry in lanes
-/// whose newcomer sits above r, the newcomer in lanes where it sits exactly at r, and keeps
-/// its entry elsewhere; the pass stops at the first rank no lane shifts into. A newcomer
-/// goes after the entries of equal weight (strict >), so ties keep depth order, and a full
-/// list drops its last entry: the same lists as inserting one pixel at a time.
+/// Inserts (w, id) into the sorted lists of the lanes in `cand` of one group (`lw[r * N..]`,
+/// `lid[r * N..]`: rank r of the N lists); returns the new K-th weights. Ranks are rewritten
+/// from the last upwards, all candidate lanes at once: rank r takes rank r − 1's entry in
+/// lanes whose newcomer sits above r, the newcomer in lanes where it sits exactly at r, and
+/// keeps its entry elsewhere; the pass stops at the first rank no lane shifts into. A
+/// newcomer goes after the entries of equal weight (strict >), so ties keep depth order, and
+/// a full list drops its last entry: the same lists as inserting one pixel at a time.
 #[inline(always)]
-fn insert_group(lw: &mut [f32x4], lid: &mut [f32x4], cand: f32x4, w: f32x4, id: f32x4) -> f32x4 {
-    let mut r = lw.len() - 1;
+fn insert_group<V: Lanes>(
+    lw: &mut [f32],
+    lid: &mut [f32],
+    k: usize,
+    cand: V::Mask,
+    w: V,
+    id: V,
+) -> V {
+    let n = V::N;
+    let mut r = k - 1;
+    let mut cur_w = V::load(&lw[r * n..]);
+    let mut cur_id = V::load(&lid[r * n..]);
     // Lanes whose newcomer belongs at rank r or above.
-    let mut at_or_above = cand & w.cmp_gt(lw[r]);
+    let mut at_or_above = cand & w.gt(cur_w);
     loop {
-        let above = if r > 0 {
-            cand & w.cmp_gt(lw[r - 1])
-        } else {
-            f32x4::ZERO
-        };
-        let (prev_w, prev_id) = if r > 0 {
-            (lw[r - 1], lid[r - 1])
-        } else {
-            (lw[r], lid[r])
-        };
-        lw[r] = above.blend(prev_w, at_or_above.blend(w, lw[r]));
-        lid[r] = above.blend(prev_id, at_or_above.blend(id, lid[r]));
-        if r == 0 || above.move_mask() == 0 {
+        if r == 0 {
+            V::select(at_or_above, w, cur_w).store(&mut lw[..n]);
+            V::select(at_or_above, id, cur_id).store(&mut lid[..n]);
+            break;
+        }
+        let prev_w = V::load(&lw[(r - 1) * n..]);
+        let prev_id = V::load(&lid[(r - 1) * n..]);
+        let above = cand & w.gt(prev_w);
+        V::select(above, prev_w, V::select(at_or_above, w, cur_w)).store(&mut lw[r * n..]);
+        V::select(above, prev_id, V::select(at_or_above, id, cur_id)).store(&mut lid[r * n..]);
+        if V::bits(above) == 0 {
             break;
         }
         at_or_above = above;
+        cur_w = prev_w;
+        cur_id = prev_id;
         r -= 1;
     }
-    lw[lw.len() - 1]
+    V::load(&lw[(k - 1) * n..])
 }
 
-/// Pixel-centre offsets of the lanes: lane l of a group starting at column c has its centre
-/// at c + l + 0.5 (exact in f32, the same value as `(c + l) as f32 + 0.5`).
-const LANE_CENTRE: f32x4 = f32x4::new([0.5, 1.5, 2.5, 3.5]);
+/// Per-splat constants of [`blend_group`], broadcast to all lanes.
+struct Lane<V> {
+    sx: V,
+    a: V,
+    b: V,
+    o: V,
+    color: [V; 3],
+    z: V,
+    id: V,
+}
 
-/// Lane masks for the columns `first..=last` of a group, indexed `first * LANES + last`.
-const LANE_VALID: [f32x4; LANES * LANES] = {
-    let mut m = [f32x4::ZERO; LANES * LANES];
-    let on = f32::from_bits(u32::MAX);
-    let mut first = 0;
-    while first < LANES {
-        let mut last = first;
-        while last < LANES {
-            let mut v = [0.0f32; LANES];
-            let mut l = first;
-            while l <= last {
-                v[l] = on;
-                l += 1;
-            }
-            m[first * LANES + last] = f32x4::new(v);
-            last += 1;
+impl<V: Lanes> Lane<V> {
+    #[inline(always)]
+    fn new(s: &Splat) -> Self {
+        Lane {
+            sx: V::splat(s.x),
+            a: V::splat(s.a),
+            b: V::splat(s.b),
+            o: V::splat(s.opacity),
+            color: s.color.map(V::splat),
+            z: V::splat(s.depth),
+            id: V::splat(f32::from_bits(s.id)),
         }
-        first += 1;
     }
-    m
-};
-
-/// Per-splat, per-row constants of [`blend_group`], broadcast to all lanes.
-struct Lane {
-    sx: f32x4,
-    a: f32x4,
-    b: f32x4,
-    cdy: f32x4,
-    dy: f32x4,
-    o: f32x4,
-    color: [f32x4; 3],
-    z: f32x4,
 }
 
-/// INRIA's per-pixel step for 4 adjacent pixels with centres `px` (pixels outside `live`
-/// are left alone): power = −½(a dx² + c dy²) − b dx dy, α = min(0.99, o·exp(power)), skip
-/// power > 0 or α < 1/255, stop if T(1 − α) < 1e-4, else ω = T·α and the sums grow by ω.
-/// Every lane performs the same IEEE operations in the same order as the scalar reference,
-/// and masked lanes add ω = 0 (the sums are finite and >= 0, so x + 0 = x bit for bit): the
-/// result equals a scalar per-pixel loop exactly.
+/// INRIA's per-pixel step for the N adjacent pixels with centres `px` whose state starts at
+/// `at` (pixels outside `live` are left alone): power = −½(a dx² + c dy²) − b dx dy,
+/// α = min(0.99, o·exp(power)), skip power > 0 or α < 1/255, stop if T(1 − α) < 1e-4, else
+/// ω = T·α, T becomes T(1 − α) and (with `shade`) the sums grow by ω. Every lane performs
+/// the same IEEE operations in the same order as the scalar reference, and masked lanes add
+/// ω = 0 (the sums are finite and >= 0, so x + 0 = x bit for bit): the result equals a
+/// scalar per-pixel loop exactly. Returns the lanes that stopped, the weights (0 outside
+/// the contributing lanes) and the new T.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn blend_group(
-    q: &Lane,
-    live: f32x4,
-    px: f32x4,
-    t: &mut f32x4,
-    r: &mut f32x4,
-    g: &mut f32x4,
-    b: &mut f32x4,
-    d: &mut f32x4,
-    ws: &mut f32x4,
-    done: &mut f32x4,
-) -> (u32, f32x4) {
+fn blend_group<V: Lanes>(
+    q: &Lane<V>,
+    cdy: V,
+    dy: V,
+    live: V::Mask,
+    px: V,
+    at: usize,
+    shade: bool,
+    s: &mut TileState<'_>,
+) -> (V::Mask, V, V) {
     let dx = q.sx - px;
-    let power = f32x4::splat(-0.5) * (q.a * dx * dx + q.cdy) - q.b * dx * q.dy;
-    let alpha = (q.o * exp4(power)).min(f32x4::splat(ALPHA_MAX));
-    let ok = live & power.cmp_le(f32x4::ZERO) & alpha.cmp_ge(f32x4::splat(ALPHA_MIN));
-    let tj = *t;
-    let test_t = tj * (f32x4::ONE - alpha);
-    let low = test_t.cmp_lt(f32x4::splat(T_MIN));
+    let power = V::splat(-0.5) * (q.a * dx * dx + cdy) - q.b * dx * dy;
+    let alpha = (q.o * power.exp()).min(V::splat(ALPHA_MAX));
+    let ok = live & power.le(V::splat(0.0)) & alpha.ge(V::splat(ALPHA_MIN));
+    let n = V::N;
+    let tj = V::load(&s.t[at..at + n]);
+    let test_t = tj * (V::splat(1.0) - alpha);
+    let low = test_t.lt(V::splat(T_MIN));
     let contrib = ok & !low;
-    let w = contrib.blend(alpha * tj, f32x4::ZERO);
-    *r += q.color[0] * w;
-    *g += q.color[1] * w;
-    *b += q.color[2] * w;
-    *d += q.z * w;
-    *ws += w;
-    *t = contrib.blend(test_t, tj);
-    let stop = ok & low;
-    *done |= stop;
-    (stop.move_mask().count_ones(), w)
+    let w = V::select(contrib, alpha * tj, V::splat(0.0));
+    if shade {
+        let add = |buf: &mut [f32; TILE_PIXELS], v: V| {
+            let p = &mut buf[at..at + n];
+            (V::load(p) + v).store(p);
+        };
+        add(s.r, q.color[0] * w);
+        add(s.g, q.color[1] * w);
+        add(s.b, q.color[2] * w);
+        add(s.depth, q.z * w);
+        add(s.wsum, w);
+    }
+    let t = V::select(contrib, test_t, tj);
+    t.store(&mut s.t[at..at + n]);
+    (ok & low, w, t)
 }
 
 /// Copies a finished tile into the tile row's output slices.
@@ -1000,12 +1139,12 @@ fn write_tile(ctx: &Ctx<'_>, row: &mut RowOut<'_>, [x0, x1, y0, y1]: [usize; 4],
         let s0 = (py - y0) * TILE;
         let src = s0..s0 + nx;
         let o = (py - y0) * w + x0;
-        let t = &flat(&st.t)[src.clone()];
+        let t = &pixels(&st.t)[src.clone()];
         if let Some(c) = row.color.as_deref_mut() {
-            let it = flat(&st.r)[src.clone()]
+            let it = pixels(&st.r)[src.clone()]
                 .iter()
-                .zip(&flat(&st.g)[src.clone()])
-                .zip(&flat(&st.b)[src.clone()])
+                .zip(&pixels(&st.g)[src.clone()])
+                .zip(&pixels(&st.b)[src.clone()])
                 .zip(t);
             for (dst, (((r, g), b), t)) in c[o * 3..(o + nx) * 3].chunks_exact_mut(3).zip(it) {
                 dst[0] = r + t * bg[0];
@@ -1014,9 +1153,9 @@ fn write_tile(ctx: &Ctx<'_>, row: &mut RowOut<'_>, [x0, x1, y0, y1]: [usize; 4],
             }
         }
         if let Some(dd) = row.depth.as_deref_mut() {
-            let it = flat(&st.depth)[src.clone()]
+            let it = pixels(&st.depth)[src.clone()]
                 .iter()
-                .zip(&flat(&st.wsum)[src.clone()]);
+                .zip(&pixels(&st.wsum)[src.clone()]);
             for (dst, (z, ws)) in dd[o..o + nx].iter_mut().zip(it) {
                 *dst = if !normalized {
                     *z

@@ -9,8 +9,8 @@ use std::sync::OnceLock;
 
 use profuse_formats::{Cameras, Gaussians};
 use splat_raster::{
-    camera, DepthMode, RasterError, Rasterizer, RenderOptions, ViewCamera, ViewRender, MAX_TOP_K,
-    NO_GAUSSIAN,
+    camera, DepthMode, RasterError, Rasterizer, RenderOptions, Simd, ViewCamera, ViewRender,
+    MAX_TOP_K, NO_GAUSSIAN,
 };
 
 // ---------------------------------------------------------------------------------------
@@ -500,6 +500,25 @@ fn all_outputs(k: usize) -> RenderOptions {
 // ---------------------------------------------------------------------------------------
 // Tests against the reference.
 
+/// Rasterizers of `g` for every SIMD width this CPU runs (portable first).
+fn rasterizers(g: &Gaussians) -> Vec<Rasterizer<'_>> {
+    let mut out = Vec::new();
+    for simd in [Simd::Portable, Simd::Avx512] {
+        let mut r = Rasterizer::new(g).unwrap();
+        match r.set_simd(simd) {
+            Ok(()) => {
+                assert_eq!(r.simd(), simd);
+                out.push(r);
+            }
+            Err(e) => {
+                assert!(matches!(e, RasterError::SimdUnsupported { .. }));
+                eprintln!("{} not tested: {e}", simd.name());
+            }
+        }
+    }
+    out
+}
+
 #[test]
 fn tiled_renderer_matches_brute_force_on_random_scenes() {
     let cases: [(u64, usize, u32, u32, [f64; 4]); 4] = [
@@ -513,19 +532,21 @@ fn tiled_renderer_matches_brute_force_on_random_scenes() {
         // The camera is not at the origin, so world and camera frames differ.
         let cams = camera_at(w, h, intr, [0.3, -0.2, -1.0], [0.5, 0.1, 4.0]);
         let g = camera_projection_scene(seed, n, &cams);
-        let raster = Rasterizer::new(&g).unwrap();
-        for k in [1usize, 4, 16] {
-            let lib = raster.render_view(&cams, 0, &all_outputs(k)).unwrap();
-            let r = ref_render(&g, &cams, 0);
-            let what = format!("seed {seed} {w}x{h} K={k}");
-            let (err, hit_pixels, slots) = compare(&lib, &r, k, &what);
-            assert!(
-                hit_pixels > (w * h) as usize / 2,
-                "{what}: only {hit_pixels} pixels hit"
-            );
-            assert!(err <= 1e-5);
-            total_slots += slots;
+        let r = ref_render(&g, &cams, 0);
+        for raster in rasterizers(&g) {
+            for k in [1usize, 4, 16] {
+                let lib = raster.render_view(&cams, 0, &all_outputs(k)).unwrap();
+                let what = format!("seed {seed} {w}x{h} K={k} {}", raster.simd().name());
+                let (err, hit_pixels, slots) = compare(&lib, &r, k, &what);
+                assert!(
+                    hit_pixels > (w * h) as usize / 2,
+                    "{what}: only {hit_pixels} pixels hit"
+                );
+                assert!(err <= 1e-5);
+                total_slots += slots;
+            }
         }
+        let raster = Rasterizer::new(&g).unwrap();
         // The library's f64 projection agrees with the independent one.
         let cam = ViewCamera::from_cameras(&cams, 0).unwrap();
         let refs = ref_project(&g, &cams, 0);
@@ -618,14 +639,115 @@ fn guitar_orbits(g: &Gaussians, w: u32, h: u32) -> Vec<(Cameras, f64)> {
 #[test]
 fn tiled_renderer_matches_brute_force_on_guitar() {
     let Some(g) = guitar() else { return };
-    let raster = Rasterizer::new(g).unwrap();
+    let rasters = rasterizers(g);
     let orbits = guitar_orbits(g, 96, 64);
     for (v, (cams, cover)) in orbits.iter().take(3).enumerate() {
-        let lib = raster.render_view(cams, 0, &all_outputs(10)).unwrap();
         let r = ref_render(g, cams, 0);
-        let (err, hit_pixels, slots) = compare(&lib, &r, 10, &format!("guitar orbit {v}"));
-        eprintln!("guitar orbit {v}: coverage {cover:.2}, {hit_pixels} pixels hit, {slots} top-K slots, max colour error {err:e}, visible {}", lib.stats().visible);
-        assert!(hit_pixels > 500);
+        for raster in &rasters {
+            let lib = raster.render_view(cams, 0, &all_outputs(10)).unwrap();
+            let what = format!("guitar orbit {v} {}", raster.simd().name());
+            let (err, hit_pixels, slots) = compare(&lib, &r, 10, &what);
+            eprintln!("{what}: coverage {cover:.2}, {hit_pixels} pixels hit, {slots} top-K slots, max colour error {err:e}, visible {}", lib.stats().visible);
+            assert!(hit_pixels > 500);
+        }
+    }
+}
+
+/// Every output of two renders, bit for bit (the first difference is reported).
+fn assert_same_bytes(a: &ViewRender, b: &ViewRender, what: &str) {
+    fn same<T: PartialEq + std::fmt::Debug>(a: Option<&[T]>, b: Option<&[T]>, what: &str) {
+        match (a, b) {
+            (Some(a), Some(b)) => {
+                assert_eq!(a.len(), b.len(), "{what}: lengths");
+                if let Some(i) = (0..a.len()).find(|&i| a[i] != b[i]) {
+                    panic!("{what}: first difference at {i}: {:?} vs {:?}", a[i], b[i]);
+                }
+            }
+            (a, b) => assert_eq!(a.is_some(), b.is_some(), "{what}: presence"),
+        }
+    }
+    let bits = |v: Option<&[f32]>| v.map(|v| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>());
+    same(
+        bits(a.color()).as_deref(),
+        bits(b.color()).as_deref(),
+        &format!("{what}: colour"),
+    );
+    same(
+        bits(a.depth()).as_deref(),
+        bits(b.depth()).as_deref(),
+        &format!("{what}: depth"),
+    );
+    same(
+        bits(a.alpha()).as_deref(),
+        bits(b.alpha()).as_deref(),
+        &format!("{what}: alpha"),
+    );
+    same(
+        bits(a.transmittance()).as_deref(),
+        bits(b.transmittance()).as_deref(),
+        &format!("{what}: T"),
+    );
+    same(
+        bits(a.topk_weights()).as_deref(),
+        bits(b.topk_weights()).as_deref(),
+        &format!("{what}: weights"),
+    );
+    same(a.topk_ids(), b.topk_ids(), &format!("{what}: ids"));
+    assert_eq!(a.stats(), b.stats(), "{what}: stats");
+}
+
+#[test]
+fn every_simd_width_renders_the_same_bytes() {
+    // Width and height not multiples of 16: partial tiles and groups.
+    let cams = camera_at(
+        161,
+        117,
+        [120.0, 120.0, 80.5, 58.5],
+        [0.0; 3],
+        [0.0, 0.0, 1.0],
+    );
+    let g = random_scene(11, 3000, &cams);
+    let rasters = rasterizers(&g);
+    let lists_only = |k| RenderOptions {
+        top_k: Some(k),
+        color: false,
+        ..Default::default()
+    };
+    let mut configs = vec![
+        ("colour".to_string(), RenderOptions::default()),
+        (
+            "normalised depth".to_string(),
+            RenderOptions {
+                depth: DepthMode::Normalized,
+                background: [0.2, 0.5, 1.0],
+                ..RenderOptions::all(1)
+            },
+        ),
+    ];
+    for k in [1, 3, 10, 64, MAX_TOP_K] {
+        configs.push((format!("all K={k}"), all_outputs(k)));
+        configs.push((format!("lists only K={k}"), lists_only(k)));
+    }
+    let portable = &rasters[0];
+    for other in &rasters[1..] {
+        for (name, opts) in &configs {
+            let a = portable.render_view(&cams, 0, opts).unwrap();
+            let b = other.render_view(&cams, 0, opts).unwrap();
+            assert!(a.stats().tile_pairs > 5000, "{name}: scene too thin");
+            assert_same_bytes(&a, &b, &format!("{name}, {}", other.simd().name()));
+        }
+    }
+    if let Some(g) = guitar() {
+        let rasters = rasterizers(g);
+        for (cams, _) in guitar_orbits(g, 200, 150).iter().take(2) {
+            for opts in [all_outputs(10), lists_only(40)] {
+                let a = rasters[0].render_view(cams, 0, &opts).unwrap();
+                for other in &rasters[1..] {
+                    let b = other.render_view(cams, 0, &opts).unwrap();
+                    assert_same_bytes(&a, &b, &format!("guitar, {}", other.simd().name()));
+                }
+            }
+        }
     }
 }
 

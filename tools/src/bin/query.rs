@@ -426,7 +426,7 @@ fn bench(a: BenchArgs) -> Result<Value, BoxError> {
             .num_threads(t)
             .build_global()?;
     }
-    if a.dim == 0 || a.m == 0 || a.dim % a.m != 0 {
+    if a.dim == 0 || a.m == 0 || !a.dim.is_multiple_of(a.m) {
         return Err(format!("--dim {} must be a positive multiple of --m {}", a.dim, a.m).into());
     }
     let d = a.dim;

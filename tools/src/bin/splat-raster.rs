@@ -13,7 +13,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use profuse_formats::{Cameras, FileKind, Gaussians};
 use profuse_tools::{chatty, peak_rss_mb, run, warn, BoxError};
 use serde_json::{json, Value};
-use splat_raster::{camera, DepthMode, Rasterizer, RenderOptions, ViewRender};
+use splat_raster::{camera, DepthMode, Rasterizer, RenderOptions, Simd, ViewRender};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -103,6 +103,11 @@ enum Command {
         /// Run only this configuration (for profiling): 0 = colour only, else top-K K.
         #[arg(long, hide = true)]
         only: Option<usize>,
+        /// SIMD width of the blend: `auto` (the widest this CPU runs), `portable` (4 lanes,
+        /// any CPU) or `avx512` (16 lanes; an error where unsupported). The output is the
+        /// same bytes for each; this compares their speed.
+        #[arg(long, value_enum, default_value = "auto")]
+        simd: SimdArg,
         #[command(flatten)]
         orbit: OrbitArgs,
     },
@@ -148,6 +153,13 @@ struct OrbitArgs {
     /// means from their per-axis median).
     #[arg(long, default_value_t = 2.5)]
     distance: f64,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum SimdArg {
+    Auto,
+    Portable,
+    Avx512,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -347,6 +359,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             threads,
             repeat,
             only,
+            simd,
             orbit,
         } => {
             if let Some(n) = threads {
@@ -358,8 +371,13 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             let g = load_scene(&scene, quiet)?;
             let load_s = t0.elapsed().as_secs_f64();
             let t0 = Instant::now();
-            let raster = Rasterizer::new(&g)?;
+            let mut raster = Rasterizer::new(&g)?;
             let prepare_s = t0.elapsed().as_secs_f64();
+            match simd {
+                SimdArg::Auto => {}
+                SimdArg::Portable => raster.set_simd(Simd::Portable)?,
+                SimdArg::Avx512 => raster.set_simd(Simd::Avx512)?,
+            }
             let ext = camera::scene_extent(&g).ok_or("the scene has no Gaussians")?;
             let poses = (0..views)
                 .map(|i| orbit_pose(&ext, &orbit, 360.0 * i as f64 / views as f64))
@@ -442,6 +460,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             );
             results.insert("visible_median".into(), json!(median_usize(&mut visible)));
             results.insert("tile_pairs_median".into(), json!(median_usize(&mut pairs)));
+            results.insert("simd".into(), json!(raster.simd().name()));
             results.insert("load_s".into(), json!(load_s));
             results.insert("prepare_s".into(), json!(prepare_s));
             results.insert("scene".into(), json!(scene));
