@@ -613,8 +613,9 @@ fn flat_mut(v: &mut [Line]) -> &mut [f32] {
 /// group (`lw[(group * K + r) * N + lane]` holds rank r of the group's pixel `lane`), so
 /// one insertion serves every lane of a group that has a candidate with SIMD compares and
 /// blends, without per-lane branches; they start as padding (weight 0, [`NO_GAUSSIAN`]),
-/// so a list that is not full needs no fill count, and the K-th rank is the bar a newcomer
-/// must beat. They reach the output once per tile.
+/// so a list that is not full needs no per-lane count, and the K-th rank is the bar a
+/// newcomer must beat (one count per group, the longest list, only spares insertions the
+/// walk through padding). They reach the output once per tile.
 #[derive(Debug, Default)]
 struct TileScratch {
     /// Transmittance.
@@ -636,6 +637,11 @@ struct TileScratch {
     lid: Vec<Line>,
     /// K of the lists.
     k: usize,
+    /// Per group: the ranks from this one on hold padding in every lane (the longest of
+    /// the group's lists), so an insertion need not shift padding into padding.
+    fill: Vec<u16>,
+    /// Per pixel row of the tile: how many of its pixels have stopped.
+    row_stopped: [u8; TILE],
     tile_start: Vec<usize>,
     tile_entries: Vec<u32>,
 }
@@ -655,6 +661,9 @@ impl TileScratch {
     fn clear_tile(&mut self, topk: bool, shade: bool) {
         self.t.fill(Line([1.0; LINE]));
         self.done.fill(ZERO_LINE);
+        self.fill.clear();
+        self.fill.resize(TILE_PIXELS / 4, 0);
+        self.row_stopped = [0; TILE];
         if shade {
             for v in [
                 &mut self.r,
@@ -860,6 +869,7 @@ struct TileState<'a> {
     done: &'a mut [f32; TILE_PIXELS],
     lw: &'a mut [f32],
     lid: &'a mut [f32],
+    fill: &'a mut [u16],
     k: usize,
 }
 
@@ -884,8 +894,11 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         done: pixels_mut(&mut st.done),
         lw: flat_mut(&mut st.lw),
         lid: flat_mut(&mut st.lid),
+        fill: &mut st.fill,
         k: st.k,
     };
+    let row_stopped = &mut st.row_stopped;
+    let row_width = (x1 - x0) as u8;
     let live = ((x1 - x0) * (y1 - y0)) as u32;
     let mut stopped = 0u32;
     for &e in list {
@@ -900,6 +913,9 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         }
         let q = Lane::<V>::new(sp);
         for py in cy0..cy1 + 1 {
+            if row_stopped[py - y0] == row_width {
+                continue;
+            }
             let dy = sp.y - (py as f32 + 0.5);
             let (lo, hi) = if sp.inv_a > 0.0 {
                 // Pixels of this row with ½ dᵀ C d <= tau (tau has a margin, see `Splat`):
@@ -931,8 +947,12 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                 (cx0, cx1)
             };
             let (lo, hi) = (lo - x0, hi - x0);
-            stopped +=
-                blend_span::<V, TOPK, CUTOFF>(&q, sp.c * dy * dy, dy, x0, py - y0, lo, hi, &mut s);
+            let row = py - y0;
+            let stops =
+                blend_span::<V, TOPK, CUTOFF>(&q, sp.c * dy * dy, dy, x0, row, lo, hi, &mut s);
+            // At most 16 per row: no overflow.
+            row_stopped[row] += stops as u8;
+            stopped += stops;
         }
         if stopped == live {
             break;
@@ -992,10 +1012,14 @@ fn blend_span<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                 // usually few, often none.
                 let kth = V::load(&lw[(k - 1) * n..]);
                 let cand = w.gt(kth);
-                let kth = if V::bits(cand) != 0 {
-                    insert_group::<V>(lw, lid, k, cand, w, q.id)
-                } else {
-                    kth
+                let kth = match s.fill.get_mut(at / n) {
+                    Some(fill) if V::bits(cand) != 0 => {
+                        let kth = insert_group::<V>(lw, lid, k, usize::from(*fill), cand, w, q.id);
+                        // One more entry in each candidate lane (or one replaced when full).
+                        *fill = (*fill + 1).min(k as u16);
+                        kth
+                    }
+                    _ => kth,
                 };
                 if CUTOFF {
                     // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so
@@ -1014,8 +1038,10 @@ fn blend_span<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
 }
 
 /// Inserts (w, id) into the sorted lists of the lanes in `cand` of one group (`lw[r * N..]`,
-/// `lid[r * N..]`: rank r of the N lists); returns the new K-th weights. Ranks are rewritten
-/// from the last upwards, all candidate lanes at once: rank r takes rank r − 1's entry in
+/// `lid[r * N..]`: rank r of the N lists) whose ranks from `fill` on hold padding in every
+/// lane; returns the new K-th weights. Ranks are rewritten from the last non-padding one
+/// (or padding rank `fill`) upwards, all candidate lanes at once (ranks further down would
+/// only shift padding into padding): rank r takes rank r − 1's entry in
 /// lanes whose newcomer sits above r, the newcomer in lanes where it sits exactly at r, and
 /// keeps its entry elsewhere; the pass stops at the first rank no lane shifts into. A
 /// newcomer goes after the entries of equal weight (strict >), so ties keep depth order, and
@@ -1025,12 +1051,13 @@ fn insert_group<V: Lanes>(
     lw: &mut [f32],
     lid: &mut [f32],
     k: usize,
+    fill: usize,
     cand: V::Mask,
     w: V,
     id: V,
 ) -> V {
     let n = V::N;
-    let mut r = k - 1;
+    let mut r = fill.min(k - 1);
     let mut cur_w = V::load(&lw[r * n..]);
     let mut cur_id = V::load(&lid[r * n..]);
     // Lanes whose newcomer belongs at rank r or above.
