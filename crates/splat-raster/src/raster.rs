@@ -244,7 +244,9 @@ struct ViewScratch {
     /// The splats in (depth, id) order.
     splats: Vec<Splat>,
     row_start: Vec<usize>,
-    row_entries: Vec<u32>,
+    /// Per tile row, its splats in depth order: index and pixel rectangle (a copy of the
+    /// rectangle, so that bucketing the row by tile column reads memory in order).
+    row_entries: Vec<(u32, [u16; 4])>,
     tiles: Mutex<Vec<TileScratch>>,
 }
 
@@ -455,12 +457,12 @@ impl<'g> Rasterizer<'g> {
             s.row_start[ty + 1] += s.row_start[ty];
         }
         s.row_entries.clear();
-        s.row_entries.resize(s.row_start[tiles_y], 0);
+        s.row_entries.resize(s.row_start[tiles_y], (0, [0; 4]));
         let mut fill = s.row_start.clone();
         for (idx, sp) in s.splats.iter().enumerate() {
             let rows = usize::from(sp.rect[2]) / TILE..usize::from(sp.rect[3]) / TILE + 1;
             for f in &mut fill[rows] {
-                s.row_entries[*f] = idx as u32;
+                s.row_entries[*f] = (idx as u32, sp.rect);
                 *f += 1;
             }
         }
@@ -696,19 +698,19 @@ struct Ctx<'a> {
 }
 
 /// Renders the tiles of one tile row; returns its (tile, Gaussian) pair count.
-fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut TileScratch) -> usize {
+fn render_row(
+    ctx: &Ctx<'_>,
+    entries: &[(u32, [u16; 4])],
+    mut row: RowOut<'_>,
+    st: &mut TileScratch,
+) -> usize {
     // Bucket the row's splats (depth-sorted) by tile column, keeping the order.
     let tiles_x = ctx.tiles_x;
     let mut start = std::mem::take(&mut st.tile_start);
     let mut list = std::mem::take(&mut st.tile_entries);
     start.clear();
     start.resize(tiles_x + 1, 0);
-    let rects = || {
-        entries
-            .iter()
-            .filter_map(|&e| Some((e, ctx.splats.get(e as usize)?.rect)))
-    };
-    for (_, r) in rects() {
+    for (_, r) in entries {
         for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
             start[tx + 1] += 1;
         }
@@ -720,7 +722,7 @@ fn render_row(ctx: &Ctx<'_>, entries: &[u32], mut row: RowOut<'_>, st: &mut Tile
     list.clear();
     list.resize(total, 0);
     let mut fill = start.clone();
-    for (e, r) in rects() {
+    for &(e, r) in entries {
         for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
             list[fill[tx]] = e;
             fill[tx] += 1;
