@@ -4,7 +4,9 @@
 //! One view is added in three steps, each parallel:
 //! 1. **Tiles.** Every 16x16 pixel tile sums its hits per (Gaussian, group) in a small
 //!    table that stays in L1 (neighbouring pixels share most of their top-K Gaussians), and
-//!    the masks' masses; ~10x fewer (Gaussian, group, Σq) records than hits come out.
+//!    the masks' masses; ~10x fewer (Gaussian, group, Σq) records than hits come out. The
+//!    rasterizer hands each tile over as soon as its lists are rendered
+//!    ([`ViewContext::sum_tile`] inside `render_tiles`), so the lists are read from cache.
 //! 2. **Buckets.** The records are counting-sorted by Gaussian block (4096 Gaussians).
 //! 3. **Blocks.** Each block of W adds its bucket: the block's entries (a few hundred KB)
 //!    stay in cache, and blocks are disjoint, so no locks.
@@ -41,8 +43,9 @@ const END: u32 = u32::MAX;
 /// log2 of the Gaussians per block of W.
 const BLOCK_SHIFT: u32 = 12;
 const BLOCK_LEN: usize = 1 << BLOCK_SHIFT;
-/// Side of the pixel tiles of step 1.
-const TILE: usize = 16;
+/// Side of the pixel tiles of step 1 (the rasterizer's tiles).
+#[cfg(test)]
+const TILE: usize = splat_raster::TILE;
 /// Slots of a tile's table (a power of two); it is flushed when half full.
 const TABLE_SLOTS: usize = 1024;
 
@@ -165,6 +168,12 @@ struct TileTable {
     used: Vec<u32>,
 }
 
+impl Default for TileTable {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 impl TileTable {
     const EMPTY: u64 = u64::MAX;
 
@@ -214,7 +223,8 @@ impl TileTable {
     }
 }
 
-/// The hits of one view, as the accumulation needs them.
+/// The hits of one view as whole-image buffers (the tests' tile source).
+#[cfg(test)]
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct ViewHits<'a> {
     /// View-local mask label per pixel of the mask grid.
@@ -280,13 +290,66 @@ impl HitCounts {
     }
 }
 
-/// What one tile row of a view produced.
+/// What one tile row of a view produced (and the table its tiles are summed in).
 #[derive(Debug, Default)]
-struct RowOutput {
+pub(crate) struct RowOutput {
     records: Vec<Record>,
     mass: Vec<u128>,
     counts: HitCounts,
     error: Option<String>,
+    table: TileTable,
+}
+
+impl RowOutput {
+    fn reset(&mut self) {
+        self.records.clear();
+        self.mass.clear();
+        self.counts = HitCounts::default();
+        self.error = None;
+    }
+}
+
+/// The top-K lists of one tile: pixel (`x0 + col`, `y0 + row`) owns the K entries at
+/// `(row * row_stride + col) * k` of `ids` and `weights`.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct TileHits<'a> {
+    pub x0: usize,
+    pub y0: usize,
+    pub width: usize,
+    pub height: usize,
+    pub row_stride: usize,
+    pub ids: &'a [u32],
+    pub weights: &'a [f32],
+}
+
+impl<'a> From<&splat_raster::TileLists<'a>> for TileHits<'a> {
+    fn from(t: &splat_raster::TileLists<'a>) -> Self {
+        TileHits {
+            x0: t.x0(),
+            y0: t.y0(),
+            width: t.width(),
+            height: t.height(),
+            row_stride: splat_raster::TILE,
+            ids: t.ids(),
+            weights: t.weights(),
+        }
+    }
+}
+
+/// What summing the tiles of one view needs: its labels, the groups of its masks, K.
+/// Borrows nothing of the accumulator, so tiles can be summed while it lends its rows.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct ViewContext<'a> {
+    labels: LabelPlane<'a>,
+    width: usize,
+    height: usize,
+    /// Group of each of the view's masks (view-local index).
+    groups: &'a [u32],
+    /// Global id of the view's first mask.
+    start: usize,
+    k: usize,
+    num_gaussians: usize,
+    view: usize,
 }
 
 /// Buffers of one view, reused from view to view.
@@ -359,16 +422,21 @@ impl Accumulator {
         self.counts
     }
 
-    /// Adds one view: μ(m) += Σ_t ω over every labelled pixel, and W[g, group(m)] += ω
-    /// for every top-K hit g of every pixel whose mask m has a group.
-    pub(crate) fn add_view(
-        &mut self,
-        hits: &ViewHits<'_>,
-        mask_group: &[u32],
+    /// Checks the view's mask range and label plane and returns what summing its tiles
+    /// needs: labels `labels` on a grid of `width` columns, masks `offset..offset +
+    /// masks_in_view` with groups `mask_group[offset..]`, lists of K = `k`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn view_context<'a>(
+        &self,
+        labels: LabelPlane<'a>,
+        width: usize,
+        offset: u32,
+        mask_group: &'a [u32],
         masks_in_view: usize,
+        k: usize,
         view: usize,
-    ) -> Result<HitCounts, String> {
-        let start = hits.offset as usize;
+    ) -> Result<ViewContext<'a>, String> {
+        let start = offset as usize;
         let (Some(groups), true) = (
             mask_group.get(start..start + masks_in_view),
             start + masks_in_view <= self.mask_mass.len(),
@@ -378,36 +446,45 @@ impl Accumulator {
                 start + masks_in_view
             ));
         };
-        let pixels = hits.labels.len();
-        if hits.ids.len() != pixels * hits.k
-            || hits.weights.len() != pixels * hits.k
-            || hits.width == 0
-            || !pixels.is_multiple_of(hits.width)
-        {
+        let pixels = labels.len();
+        if width == 0 || !pixels.is_multiple_of(width) {
             return Err(format!(
-                "view {view}: {} top-K ids and {} weights for {pixels} mask pixels with K = {}",
-                hits.ids.len(),
-                hits.weights.len(),
-                hits.k
+                "view {view}: {pixels} mask pixels are not rows of {width}"
             ));
         }
-        let tile_rows = (pixels / hits.width).div_ceil(TILE);
+        Ok(ViewContext {
+            labels,
+            width,
+            height: pixels / width,
+            groups,
+            start,
+            k,
+            num_gaussians: self.num_gaussians,
+            view,
+        })
+    }
+
+    /// The per-tile-row outputs of a new view, cleared, for the tile source to fill
+    /// (through [`ViewContext::sum_tile`]) and [`Accumulator::end_view`] to add.
+    pub(crate) fn begin_view(&mut self) -> &mut Vec<RowOutput> {
+        for row in &mut self.scratch.rows {
+            row.reset();
+        }
+        &mut self.scratch.rows
+    }
+
+    /// Adds what the tiles of the view produced: μ(m) += Σ_t ω over every labelled pixel,
+    /// and W[g, group(m)] += ω for every top-K hit g of every pixel whose mask m has a
+    /// group.
+    pub(crate) fn end_view(&mut self, ctx: &ViewContext<'_>) -> Result<HitCounts, String> {
         let scratch = &mut self.scratch;
-        scratch.rows.resize_with(tile_rows, RowOutput::default);
-        let num_gaussians = self.num_gaussians;
-        scratch.rows.par_iter_mut().enumerate().for_each_init(
-            TileTable::new,
-            |table, (ty, out)| {
-                sum_tile_row(hits, groups, num_gaussians, ty, table, out);
-            },
-        );
         let mut counts = HitCounts::default();
         for row in &scratch.rows {
             if let Some(e) = &row.error {
-                return Err(format!("view {view}: {e}"));
+                return Err(format!("view {}: {e}", ctx.view));
             }
             counts.add(row.counts);
-            for (m, q) in self.mask_mass[start..].iter_mut().zip(&row.mass) {
+            for (m, q) in self.mask_mass[ctx.start..].iter_mut().zip(&row.mass) {
                 *m += *q;
             }
         }
@@ -425,6 +502,55 @@ impl Accumulator {
         });
         self.counts.add(counts);
         Ok(counts)
+    }
+
+    /// Adds one view whose top-K lists are whole-image buffers (see
+    /// [`Accumulator::end_view`] for what is added).
+    #[cfg(test)]
+    pub(crate) fn add_view(
+        &mut self,
+        hits: &ViewHits<'_>,
+        mask_group: &[u32],
+        masks_in_view: usize,
+        view: usize,
+    ) -> Result<HitCounts, String> {
+        let ctx = self.view_context(
+            hits.labels,
+            hits.width,
+            hits.offset,
+            mask_group,
+            masks_in_view,
+            hits.k,
+            view,
+        )?;
+        let pixels = hits.labels.len();
+        if hits.ids.len() != pixels * hits.k || hits.weights.len() != pixels * hits.k {
+            return Err(format!(
+                "view {view}: {} top-K ids and {} weights for {pixels} mask pixels with K = {}",
+                hits.ids.len(),
+                hits.weights.len(),
+                hits.k
+            ));
+        }
+        let rows = self.begin_view();
+        rows.resize_with(ctx.height.div_ceil(TILE), RowOutput::default);
+        rows.par_iter_mut().enumerate().for_each(|(ty, out)| {
+            for x0 in (0..ctx.width).step_by(TILE) {
+                let (y0, k) = (ty * TILE, hits.k);
+                let first = (y0 * ctx.width + x0) * k;
+                let tile = TileHits {
+                    x0,
+                    y0,
+                    width: (ctx.width - x0).min(TILE),
+                    height: (ctx.height - y0).min(TILE),
+                    row_stride: ctx.width,
+                    ids: &hits.ids[first..],
+                    weights: &hits.weights[first..],
+                };
+                ctx.sum_tile(&tile, out);
+            }
+        });
+        self.end_view(&ctx)
     }
 
     /// W[g, group] += q (merging partial sums).
@@ -501,28 +627,33 @@ impl Accumulator {
     }
 }
 
-/// Step 1 for tile row `ty`: the masses of the view's masks, and per tile the sums of its
-/// hits per (Gaussian, group), appended to `out.records`.
-fn sum_tile_row(
-    hits: &ViewHits<'_>,
-    groups: &[u32],
-    num_gaussians: usize,
-    ty: usize,
-    table: &mut TileTable,
-    out: &mut RowOutput,
-) {
-    let (k, width) = (hits.k, hits.width);
-    let height = hits.labels.len() / width;
-    out.records.clear();
-    out.mass.clear();
-    out.mass.resize(groups.len(), 0);
-    out.counts = HitCounts::default();
-    out.error = None;
-    let rows = ty * TILE..((ty + 1) * TILE).min(height);
-    for x0 in (0..width).step_by(TILE) {
-        for y in rows.clone() {
-            for px in y * width + x0..y * width + (x0 + TILE).min(width) {
-                let Some(local) = hits.labels.local(px) else {
+impl ViewContext<'_> {
+    /// Step 1 for one tile: adds the masses of its pixels' masks to `out.mass` and its
+    /// hits summed per (Gaussian, group) to `out.records`. A problem is recorded in
+    /// `out.error` (the row then stops adding).
+    pub(crate) fn sum_tile(&self, tile: &TileHits<'_>, out: &mut RowOutput) {
+        let groups = self.groups;
+        if out.error.is_some() {
+            return;
+        }
+        if out.mass.len() != groups.len() {
+            out.mass.clear();
+            out.mass.resize(groups.len(), 0);
+        }
+        let (k, width) = (self.k, self.width);
+        if tile.x0 + tile.width > width || tile.y0 + tile.height > self.height {
+            out.error = Some(format!(
+                "tile at ({}, {}) of {}x{} pixels is outside the {width}x{} mask grid",
+                tile.x0, tile.y0, tile.width, tile.height, self.height
+            ));
+            return;
+        }
+        let table = &mut out.table;
+        for row in 0..tile.height {
+            let y = tile.y0 + row;
+            for col in 0..tile.width {
+                let px = y * width + tile.x0 + col;
+                let Some(local) = self.labels.local(px) else {
                     continue;
                 };
                 let Some(&group) = groups.get(local) else {
@@ -533,17 +664,28 @@ fn sum_tile_row(
                     table.flush(&mut out.records);
                     return;
                 };
-                let ids = &hits.ids[px * k..][..k];
-                let ws = &hits.weights[px * k..][..k];
+                let first = (row * tile.row_stride + col) * k;
+                let (Some(ids), Some(ws)) = (
+                    tile.ids.get(first..first + k),
+                    tile.weights.get(first..first + k),
+                ) else {
+                    out.error = Some(format!(
+                        "the lists of pixel ({}, {y}) are missing",
+                        tile.x0 + col
+                    ));
+                    table.flush(&mut out.records);
+                    return;
+                };
                 let mut pixel = 0u128;
                 let mut n = 0u64;
                 for (&g, &w) in ids.iter().zip(ws) {
                     if g == NO_GAUSSIAN {
                         break;
                     }
-                    if g as usize >= num_gaussians {
+                    if g as usize >= self.num_gaussians {
                         out.error = Some(format!(
-                            "the rasterizer returned Gaussian {g} of {num_gaussians}"
+                            "the rasterizer returned Gaussian {g} of {}",
+                            self.num_gaussians
                         ));
                         table.flush(&mut out.records);
                         return;

@@ -31,9 +31,11 @@
 //!   in any order ([`merge`]), give the same integers as one pass, and [`finish`] the same
 //!   bytes. After the pass everything is f64, each row summed in ascending proposal order.
 //! * **Streaming, memory independent of the number of views.** Views are rendered one at
-//!   a time into one reused `ViewRender` (K × 8 bytes per mask-grid pixel). The accumulator
-//!   holds 4 bytes per Gaussian, 24 per nonzero (Gaussian, proposal) pair and 16 per mask,
-//!   plus one view's scratch; nothing per view or per pixel accumulates.
+//!   a time, tile by tile ([`splat_raster::Rasterizer::render_tiles`]): each 16x16 tile's
+//!   top-K lists are summed as soon as they are rendered, while they are in cache, so no
+//!   image-sized list buffer exists. The accumulator holds 4 bytes per Gaussian, 24 per
+//!   nonzero (Gaussian, proposal) pair and 16 per mask, plus one view's scratch (its
+//!   tiles' records); nothing per view or per pixel accumulates.
 //! * **Cache-friendly scatter.** Gaussian ids are arbitrary with respect to the screen, so
 //!   adding hits straight into W would miss the cache on nearly every Gaussian's first touch
 //!   in a view. Instead each 16x16 tile first sums its hits per (Gaussian, proposal) in a
@@ -96,7 +98,7 @@ use std::ops::Range;
 use std::time::Instant;
 
 use profuse_formats::{Cameras, Gaussians, Labels, Masks};
-use splat_raster::{Rasterizer, RenderOptions, RenderStats, ViewCamera, ViewRender};
+use splat_raster::{ListScratch, Rasterizer, RenderOptions, RenderStats, ViewCamera};
 
 pub use accumulate::{dequantise, quantise, HitCounts, WeightMatrix, WEIGHT_SCALE};
 pub use error::{FuseError, Result};
@@ -104,7 +106,7 @@ pub use finish::{finish, group_descriptors, Precision, Registration, Summary, EP
 pub use groups::{Grouping, Groups, Orphans, NO_GROUP};
 pub use partial::{merge, PartialSums, Timings, PARTIAL_FORMAT, PARTIAL_VERSION};
 
-use accumulate::{Accumulator, LabelPlane, ViewHits};
+use accumulate::{Accumulator, LabelPlane, TileHits};
 
 /// Top-K of the paper (K = 10 saturates with proposals, Table topk_miou).
 pub const DEFAULT_K: usize = 10;
@@ -328,12 +330,15 @@ pub fn accumulate(
         ..RenderOptions::default()
     };
     opts.validate().map_err(render_err)?;
+    let bad_masks = |detail| FuseError::BadMasks {
+        masks: names.masks.clone(),
+        detail,
+    };
 
     let mut acc = Accumulator::new(scene.gaussians.len(), masks.num_masks(), groups.num_groups);
-    let mut render = ViewRender::default();
+    let mut scratch = ListScratch::default();
     let mut timings = Timings::default();
     let plane = masks.width * masks.height;
-    let topk_bytes = plane * k * 8;
     for view in views.clone() {
         let labels = match &masks.labels {
             Labels::U16(b) => LabelPlane::U16(&b[view * plane..(view + 1) * plane]),
@@ -347,38 +352,43 @@ pub fn accumulate(
             counts: HitCounts::default(),
             nnz: acc.nnz(),
             accumulator_bytes: acc.heap_bytes(),
-            view_buffer_bytes: topk_bytes + acc.scratch_bytes(),
+            view_buffer_bytes: acc.scratch_bytes(),
             render: RenderStats::default(),
         };
         if labels.any_mask() {
             let t0 = Instant::now();
             let cam = grid_camera(scene.cameras, view, masks.width as u32, masks.height as u32)
                 .map_err(render_err)?;
-            raster
-                .render_camera_into(&cam, view, &opts, &mut render)
+            let ctx = acc
+                .view_context(
+                    labels,
+                    masks.width,
+                    masks.mask_offsets[view],
+                    &groups.mask_group,
+                    masks.masks_in_view(view),
+                    k,
+                    view,
+                )
+                .map_err(bad_masks)?;
+            // Each tile's lists are summed as soon as they are rendered, while in cache.
+            report.render = raster
+                .render_tiles(
+                    &cam,
+                    view,
+                    k,
+                    &mut scratch,
+                    acc.begin_view(),
+                    |tile, row| ctx.sum_tile(&TileHits::from(tile), row),
+                )
                 .map_err(render_err)?;
             let t1 = Instant::now();
-            let hits = ViewHits {
-                labels,
-                offset: masks.mask_offsets[view],
-                width: masks.width,
-                ids: render.topk_ids().unwrap_or_default(),
-                weights: render.topk_weights().unwrap_or_default(),
-                k,
-            };
-            report.counts = acc
-                .add_view(&hits, &groups.mask_group, masks.masks_in_view(view), view)
-                .map_err(|detail| FuseError::BadMasks {
-                    masks: names.masks.clone(),
-                    detail,
-                })?;
+            report.counts = acc.end_view(&ctx).map_err(bad_masks)?;
             report.rendered = true;
-            report.render = render.stats();
             report.raster_s = (t1 - t0).as_secs_f64();
             report.accumulate_s = t1.elapsed().as_secs_f64();
             report.nnz = acc.nnz();
             report.accumulator_bytes = acc.heap_bytes();
-            report.view_buffer_bytes = topk_bytes + acc.scratch_bytes();
+            report.view_buffer_bytes = acc.scratch_bytes();
             timings.raster_s += report.raster_s;
             timings.accumulate_s += report.accumulate_s;
         }

@@ -215,6 +215,67 @@ impl ViewRender {
     }
 }
 
+/// Reusable buffers of [`Rasterizer::render_tiles`] (binning and per-worker tile scratch).
+#[derive(Debug, Default)]
+pub struct ListScratch(ViewScratch);
+
+/// The top-K lists of one tile, as [`Rasterizer::render_tiles`] hands them over: pixel
+/// (`x0 + col`, `y0 + row`) owns the K entries at `(row * TILE + col) * K` of
+/// [`TileLists::ids`] and [`TileLists::weights`] (descending weight, ties in depth order,
+/// padded with [`NO_GAUSSIAN`] and 0), for `col < width`, `row < height`.
+#[derive(Debug, Clone, Copy)]
+pub struct TileLists<'a> {
+    x0: usize,
+    y0: usize,
+    width: usize,
+    height: usize,
+    k: usize,
+    ids: &'a [u32],
+    weights: &'a [f32],
+}
+
+impl<'a> TileLists<'a> {
+    /// Image column of the tile's first pixel.
+    pub fn x0(&self) -> usize {
+        self.x0
+    }
+    /// Image row of the tile's first pixel.
+    pub fn y0(&self) -> usize {
+        self.y0
+    }
+    /// Pixels per row inside the image (16 except at the right edge).
+    pub fn width(&self) -> usize {
+        self.width
+    }
+    /// Rows inside the image (16 except at the bottom edge).
+    pub fn height(&self) -> usize {
+        self.height
+    }
+    /// K.
+    pub fn k(&self) -> usize {
+        self.k
+    }
+    /// The ids of every list, `(row * TILE + col) * K + rank`.
+    pub fn ids(&self) -> &'a [u32] {
+        self.ids
+    }
+    /// The weights beside [`TileLists::ids`].
+    pub fn weights(&self) -> &'a [f32] {
+        self.weights
+    }
+    /// The K ids and weights of tile pixel (`col`, `row`); `None` outside the tile.
+    pub fn pixel(&self, col: usize, row: usize) -> Option<(&'a [u32], &'a [f32])> {
+        if col >= self.width || row >= self.height {
+            return None;
+        }
+        let i = (row * TILE + col) * self.k;
+        Some((
+            self.ids.get(i..i + self.k)?,
+            self.weights.get(i..i + self.k)?,
+        ))
+    }
+}
+
 /// Gaussians projected per job of [`Rasterizer::bin`] (a power of two: the key packs the
 /// position within the chunk into the low bits).
 const PROJECT_CHUNK: usize = 1 << CHUNK_BITS;
@@ -382,6 +443,68 @@ impl<'g> Rasterizer<'g> {
         let pairs = blend(cam, opts, self.level, out);
         out.stats.tile_pairs = pairs;
         Ok(())
+    }
+
+    /// Renders only the top-K lists of `cam`, tile by tile, and hands every finished 16x16
+    /// tile (smaller at the right and bottom edges) to `consume` together with the state
+    /// of its tile row: `rows` is resized to the number of tile rows (new entries
+    /// `R::default()`), and each row's tiles reach its state in order, from one thread, so
+    /// whatever `consume` accumulates per row does not depend on the thread count. The
+    /// lists are those of [`Rasterizer::render_camera_into`] with `top_k: Some(k)`, but no
+    /// image-sized buffer exists: a tile's lists live in the worker's scratch while
+    /// `consume` reads them (registration sums them this way, while they are in cache).
+    /// `scratch` is reused from view to view.
+    pub fn render_tiles<R, F>(
+        &self,
+        cam: &ViewCamera,
+        view: usize,
+        k: usize,
+        scratch: &mut ListScratch,
+        rows: &mut Vec<R>,
+        consume: F,
+    ) -> Result<RenderStats>
+    where
+        R: Default + Send,
+        F: Fn(&TileLists<'_>, &mut R) + Sync,
+    {
+        let opts = RenderOptions {
+            color: false,
+            top_k: Some(k),
+            ..RenderOptions::default()
+        };
+        opts.validate()?;
+        cam.check(view)?;
+        let s = &mut scratch.0;
+        self.bin(cam, s);
+        let (tiles_x, tiles_y) = cam.tiles();
+        rows.truncate(tiles_y);
+        rows.resize_with(tiles_y, R::default);
+        let s = &*s;
+        let ctx = Ctx {
+            splats: &s.splats,
+            width: cam.width as usize,
+            height: cam.height as usize,
+            tiles_x,
+            k,
+            lists_only: true,
+            opts: &opts,
+            level: self.level,
+        };
+        let tile_pairs = rows
+            .par_iter_mut()
+            .enumerate()
+            .map_init(
+                || Pooled::take(&s.tiles, tiles_x, k),
+                |st, (ty, state)| {
+                    let entries = &s.row_entries[s.row_start[ty]..s.row_start[ty + 1]];
+                    consume_row(&ctx, entries, ty, st.get(), state, &consume)
+                },
+            )
+            .sum();
+        Ok(RenderStats {
+            visible: s.splats.len(),
+            tile_pairs,
+        })
     }
 
     /// Renders `views` one after the other (each in parallel over tiles) and calls `f` with
@@ -646,6 +769,9 @@ struct TileScratch {
     row_stopped: [u8; TILE],
     tile_start: Vec<usize>,
     tile_entries: Vec<u32>,
+    /// One tile's lists in pixel-major form, for [`Rasterizer::render_tiles`].
+    tile_ids: Vec<u32>,
+    tile_weights: Vec<f32>,
 }
 
 const PIXEL_LINES: usize = TILE_PIXELS / LINE;
@@ -704,30 +830,10 @@ fn render_row(
     mut row: RowOut<'_>,
     st: &mut TileScratch,
 ) -> usize {
-    // Bucket the row's splats (depth-sorted) by tile column, keeping the order.
     let tiles_x = ctx.tiles_x;
     let mut start = std::mem::take(&mut st.tile_start);
     let mut list = std::mem::take(&mut st.tile_entries);
-    start.clear();
-    start.resize(tiles_x + 1, 0);
-    for (_, r) in entries {
-        for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
-            start[tx + 1] += 1;
-        }
-    }
-    for tx in 0..tiles_x {
-        start[tx + 1] += start[tx];
-    }
-    let total = start[tiles_x];
-    list.clear();
-    list.resize(total, 0);
-    let mut fill = start.clone();
-    for &(e, r) in entries {
-        for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
-            list[fill[tx]] = e;
-            fill[tx] += 1;
-        }
-    }
+    let total = bucket_by_tile(entries, tiles_x, &mut start, &mut list);
     let splats = ctx.splats;
 
     let y0 = row.ty * TILE;
@@ -770,6 +876,99 @@ fn render_row(
     }
     st.tile_start = start;
     st.tile_entries = list;
+    total
+}
+
+/// Buckets a tile row's splats (depth-sorted) by tile column, keeping the order: tile tx's
+/// splats are `list[start[tx]..start[tx + 1]]`. Returns the (tile, splat) pair count.
+fn bucket_by_tile(
+    entries: &[(u32, [u16; 4])],
+    tiles_x: usize,
+    start: &mut Vec<usize>,
+    list: &mut Vec<u32>,
+) -> usize {
+    start.clear();
+    start.resize(tiles_x + 1, 0);
+    for (_, r) in entries {
+        for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
+            start[tx + 1] += 1;
+        }
+    }
+    for tx in 0..tiles_x {
+        start[tx + 1] += start[tx];
+    }
+    let total = start[tiles_x];
+    list.clear();
+    list.resize(total, 0);
+    let mut fill = start.clone();
+    for &(e, r) in entries {
+        for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
+            list[fill[tx]] = e;
+            fill[tx] += 1;
+        }
+    }
+    total
+}
+
+/// Renders the lists of one tile row tile by tile into the worker's tile buffers and hands
+/// each tile to `consume` with the row's state; returns the row's (tile, splat) pair count.
+fn consume_row<R, F>(
+    ctx: &Ctx<'_>,
+    entries: &[(u32, [u16; 4])],
+    ty: usize,
+    st: &mut TileScratch,
+    state: &mut R,
+    consume: &F,
+) -> usize
+where
+    F: Fn(&TileLists<'_>, &mut R),
+{
+    let (tiles_x, k, splats) = (ctx.tiles_x, ctx.k, ctx.splats);
+    let mut start = std::mem::take(&mut st.tile_start);
+    let mut list = std::mem::take(&mut st.tile_entries);
+    let mut ids = std::mem::take(&mut st.tile_ids);
+    let mut weights = std::mem::take(&mut st.tile_weights);
+    ids.resize(TILE_PIXELS * k, NO_GAUSSIAN);
+    weights.resize(TILE_PIXELS * k, 0.0);
+    let total = bucket_by_tile(entries, tiles_x, &mut start, &mut list);
+    let y0 = ty * TILE;
+    let y1 = (y0 + TILE).min(ctx.height);
+    for tx in 0..tiles_x {
+        let x0 = tx * TILE;
+        let x1 = (x0 + TILE).min(ctx.width);
+        let tile = &list[start[tx]..start[tx + 1]];
+        let (cols, rows) = (x1 - x0, y1 - y0);
+        let mut out = TopKOut {
+            k,
+            stride: TILE * k,
+            base: 0,
+            w: &mut weights,
+            id: &mut ids,
+        };
+        if tile.is_empty() {
+            pad_lists(&mut out, cols, rows);
+        } else {
+            blend_tile_at::<true, true>(ctx, splats, tile, [x0, x1, y0, y1], st);
+            match ctx.level.lanes() {
+                4 => write_lists::<4>(&mut out, cols, rows, st),
+                _ => write_lists::<16>(&mut out, cols, rows, st),
+            }
+        }
+        let lists = TileLists {
+            x0,
+            y0,
+            width: cols,
+            height: rows,
+            k,
+            ids: &ids,
+            weights: &weights,
+        };
+        consume(&lists, state);
+    }
+    st.tile_start = start;
+    st.tile_entries = list;
+    st.tile_ids = ids;
+    st.tile_weights = weights;
     total
 }
 

@@ -9,8 +9,8 @@ use std::sync::OnceLock;
 
 use profuse_formats::{Cameras, Gaussians};
 use splat_raster::{
-    camera, DepthMode, RasterError, Rasterizer, RenderOptions, Simd, ViewCamera, ViewRender,
-    MAX_TOP_K, NO_GAUSSIAN,
+    camera, DepthMode, ListScratch, RasterError, Rasterizer, RenderOptions, Simd, ViewCamera,
+    ViewRender, MAX_TOP_K, NO_GAUSSIAN, TILE,
 };
 
 // ---------------------------------------------------------------------------------------
@@ -694,6 +694,81 @@ fn assert_same_bytes(a: &ViewRender, b: &ViewRender, what: &str) {
     );
     same(a.topk_ids(), b.topk_ids(), &format!("{what}: ids"));
     assert_eq!(a.stats(), b.stats(), "{what}: stats");
+}
+
+#[test]
+fn render_tiles_hands_over_every_tile_once_with_the_lists_of_a_view_render() {
+    let cams = camera_at(
+        161,
+        117,
+        [120.0, 120.0, 80.5, 58.5],
+        [0.0; 3],
+        [0.0, 0.0, 1.0],
+    );
+    let g = random_scene(12, 3000, &cams);
+    let cam = ViewCamera::from_cameras(&cams, 0).unwrap();
+    let (tiles_x, tiles_y) = (161usize.div_ceil(TILE), 117usize.div_ceil(TILE));
+    for raster in rasterizers(&g) {
+        // One scratch and one row vector for every K: both are reused.
+        let mut scratch = ListScratch::default();
+        let mut rows: Vec<Vec<(usize, usize, usize, usize)>> = vec![vec![(9, 9, 9, 9)]; 20];
+        for k in [1usize, 10, 64] {
+            let opts = RenderOptions {
+                top_k: Some(k),
+                color: false,
+                ..Default::default()
+            };
+            let full = raster.render_view(&cams, 0, &opts).unwrap();
+            let mismatches = std::sync::atomic::AtomicUsize::new(0);
+            for r in &mut rows {
+                r.clear();
+            }
+            let stats = raster
+                .render_tiles(&cam, 0, k, &mut scratch, &mut rows, |tile, seen| {
+                    assert_eq!(tile.k(), k);
+                    seen.push((tile.x0(), tile.y0(), tile.width(), tile.height()));
+                    for row in 0..tile.height() {
+                        for col in 0..tile.width() {
+                            let (ids, ws) = tile.pixel(col, row).unwrap();
+                            let (fi, fw) = full.topk(tile.x0() + col, tile.y0() + row).unwrap();
+                            let i = (row * TILE + col) * k;
+                            assert_eq!(&tile.ids()[i..i + k], ids);
+                            if ids != fi || ws != fw {
+                                mismatches.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            }
+                        }
+                    }
+                    assert!(tile.pixel(tile.width(), 0).is_none());
+                    assert!(tile.pixel(0, tile.height()).is_none());
+                })
+                .unwrap();
+            let what = format!("{} K={k}", raster.simd().name());
+            assert_eq!(mismatches.into_inner(), 0, "{what}: lists differ");
+            assert_eq!(stats, full.stats(), "{what}");
+            assert!(stats.tile_pairs > 5000, "{what}: scene too thin");
+            assert_eq!(rows.len(), tiles_y, "{what}: one state per tile row");
+            for (ty, seen) in rows.iter().enumerate() {
+                let expected: Vec<_> = (0..tiles_x)
+                    .map(|tx| {
+                        let (x0, y0) = (tx * TILE, ty * TILE);
+                        (x0, y0, (161 - x0).min(TILE), (117 - y0).min(TILE))
+                    })
+                    .collect();
+                assert_eq!(seen, &expected, "{what}: tiles of row {ty}, in order");
+            }
+        }
+        assert!(matches!(
+            raster.render_tiles(
+                &cam,
+                0,
+                0,
+                &mut ListScratch::default(),
+                &mut rows,
+                |_, _| {}
+            ),
+            Err(RasterError::TopKZero)
+        ));
+    }
 }
 
 #[test]
