@@ -1118,7 +1118,10 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                 continue;
             }
             let dy = sp.y - (py as f32 + 0.5);
-            let (lo, hi) = if sp.inv_a > 0.0 {
+            // With a group per tile row, narrowing the row to its span saves no group, and
+            // the pixels outside it fail the alpha test anyway (the span is a superset of
+            // the pixels with alpha >= 1/255): solve spans only for narrower groups.
+            let (lo, hi) = if V::N < TILE && sp.inv_a > 0.0 {
                 // Pixels of this row with ½ dᵀ C d <= tau (tau has a margin, see `Splat`):
                 // solve the quadratic in dx, widen by SPAN_SLACK for rounding.
                 let disc = sp.two_a_tau - sp.det * dy * dy;
