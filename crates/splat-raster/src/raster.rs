@@ -12,7 +12,7 @@ use crate::error::{RasterError, Result};
 use crate::project::{prepare, project, Prepared, Projected, Splat};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::avx512::F32x16;
-use crate::simd::{Lanes, Level};
+use crate::simd::{prefetch, Lanes, Level};
 use crate::{ALPHA_MAX, ALPHA_MIN, MAX_TOP_K, NO_GAUSSIAN, TILE, T_MIN};
 
 const TILE_PIXELS: usize = TILE * TILE;
@@ -1102,7 +1102,15 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     let row_width = (x1 - x0) as u8;
     let live = ((x1 - x0) * (y1 - y0)) as u32;
     let mut stopped = 0u32;
-    for &e in list {
+    for (i, &e) in list.iter().enumerate() {
+        // The list's splats are scattered over the view's (depth order, not screen order):
+        // ask for one a few entries ahead while this one is blended.
+        if let Some(ahead) = list
+            .get(i + PREFETCH_AHEAD)
+            .and_then(|&a| splats.get(a as usize))
+        {
+            prefetch(ahead);
+        }
         let Some(sp) = splats.get(e as usize) else {
             continue;
         };
@@ -1163,6 +1171,9 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         }
     }
 }
+
+/// How many list entries ahead [`blend_tile`] prefetches a splat.
+const PREFETCH_AHEAD: usize = 6;
 
 /// Extra width, in pixels, of each per-row span beyond the solved ellipse bounds: far above
 /// the f32 rounding of those bounds (the exponent margin of `Splat::two_a_tau` adds more).
