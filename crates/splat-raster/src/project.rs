@@ -1,6 +1,8 @@
 //! Per-Gaussian work: view-independent preparation (3D covariance, opacity) and the EWA
 //! projection into one view.
 
+use std::ops::Range;
+
 use profuse_formats::Gaussians;
 
 use crate::camera::ViewCamera;
@@ -43,7 +45,18 @@ pub(crate) struct Prepared {
     /// ln(255 · opacity) + [`TAU_MARGIN`]: the footprint bound of [`Splat::new`], view
     /// independent, so computed once here rather than once per view.
     pub tau: Vec<f64>,
+    /// An upper bound on the largest eigenvalue of Σ (the largest scale², with a margin,
+    /// see [`var_bound`]) for the off-image pre-cull of [`project_chunk`], or
+    /// [`NEVER_DRAWN`] where the single-precision opacity is NaN or below 1/255 (such a
+    /// Gaussian never becomes a [`Splat`] in any view).
+    pub var_max: Vec<f32>,
+    /// The colour as a [`Splat`] holds it when it is view independent (SH degree 0): what
+    /// [`eval_sh`] returns, in single precision. Empty for SH degree > 0.
+    pub color0: Vec<[f32; 3]>,
 }
+
+/// [`Prepared::var_max`] of a Gaussian that is never drawn.
+const NEVER_DRAWN: f32 = -1.0;
 
 pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
     let n = g.len();
@@ -115,11 +128,47 @@ pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
         .map(|l| 1.0 / (1.0 + (-f64::from(*l)).exp()))
         .collect();
     let tau = opacity.iter().map(|&o| footprint_tau(o)).collect();
+    let var_max = g
+        .log_scales
+        .iter()
+        .zip(&opacity)
+        .map(|(s, &o)| {
+            let o = o as f32;
+            if o.is_nan() || o < ALPHA_MIN {
+                NEVER_DRAWN
+            } else {
+                var_bound(*s)
+            }
+        })
+        .collect();
+    let color0 = if g.sh_degree == 0 {
+        // Degree 0 ignores the direction (see `eval_sh`); any unit vector will do.
+        g.sh_dc
+            .iter()
+            .map(|dc| eval_sh(0, *dc, &[], [0.0, 0.0, 1.0]).map(|x| x as f32))
+            .collect()
+    } else {
+        Vec::new()
+    };
     Ok(Prepared {
         cov3d,
         opacity,
         tau,
+        var_max,
+        color0,
     })
+}
+
+/// An upper bound on the largest eigenvalue of the Σ that [`covariance_3d`] computes from
+/// these log-scales: exp(2 max log s). Σ = R S² Rᵀ with R orthonormal up to rounding, so
+/// its eigenvalues are the s_j² up to a relative error of a few 1e-16; rounding the bound
+/// to f32 loses at most 6e-8 relative. Both are covered by the 1e-6 margin of
+/// [`ViewConsts::cull_gain`]. Huge scales give +inf: never pre-culled.
+fn var_bound(log_scales: [f32; 3]) -> f32 {
+    let l = log_scales
+        .iter()
+        .fold(f64::NEG_INFINITY, |m, &l| m.max(f64::from(l)));
+    (2.0 * l).exp() as f32
 }
 
 /// ln(255 · opacity) + [`TAU_MARGIN`]: pixels with ½ dᵀ Σ⁻¹ d > tau have alpha < 1/255.
@@ -325,6 +374,8 @@ const TAU_MARGIN: f64 = 0.05;
 const RECT_SLACK: f64 = 1.0 / 64.0;
 
 impl Splat {
+    // Rendering goes through `project_chunk`; this is its reference in the tests.
+    #[cfg_attr(not(test), allow(dead_code))]
     /// The tile-loop form of `p`, or `None` when no pixel of the image can reach alpha >= 1/255.
     /// `tau` is [`footprint_tau`] of its opacity.
     pub fn new(p: &Projected, tau: f64, width: u32, height: u32) -> Option<Splat> {
@@ -382,9 +433,366 @@ impl Splat {
     }
 }
 
+/// Projects Gaussians `ids` into `cam` and appends, in id order, the [`Splat`] of each one
+/// that [`project`] followed by [`Splat::new`] keeps: bit for bit the same values (the same
+/// operations in the same order; the unit tests compare the two paths), for less work:
+/// per-view constants are computed once, Gaussians that are never drawn are skipped
+/// before the camera transform, Gaussians far off the image are rejected by a
+/// conservative bound before the EWA projection (see [`ViewConsts::surely_off_grid`]),
+/// degree-0 colours come from [`Prepared::color0`], and no [`Projected`] is built.
+pub(crate) fn project_chunk(
+    g: &Gaussians,
+    prep: &Prepared,
+    cam: &ViewCamera,
+    campos: [f64; 3],
+    ids: Range<usize>,
+    out: &mut Vec<Splat>,
+) {
+    project_chunk_with(&ViewConsts::new(cam), g, prep, campos, ids, out);
+}
+
+/// [`project_chunk`] with its per-view constants given (the tests tamper with them).
+fn project_chunk_with(
+    view: &ViewConsts,
+    g: &Gaussians,
+    prep: &Prepared,
+    campos: [f64; 3],
+    ids: Range<usize>,
+    out: &mut Vec<Splat>,
+) {
+    let means = &g.means[ids.clone()];
+    let var_max = &prep.var_max[ids.clone()];
+    for (k, (mean, &var)) in means.iter().zip(var_max).enumerate() {
+        // NEVER_DRAWN: Splat::new rejects it whatever the view.
+        if var < 0.0 {
+            continue;
+        }
+        if let Some(splat) = view.splat(g, prep, campos, ids.start + k, *mean, var) {
+            out.push(splat);
+        }
+    }
+}
+
+/// What [`project`] and [`Splat::new`] compute from the camera alone, computed once per
+/// chunk with the same expressions.
+struct ViewConsts {
+    rotation: [[f64; 3]; 3],
+    translation: [f64; 3],
+    focal: [f64; 2],
+    principal: [f64; 2],
+    /// Bounds of the clamped x/z and y/z (`clamp_tan` of [`project`]).
+    tan_x: [f64; 2],
+    tan_y: [f64; 2],
+    /// 0.0 · rotation[0][b] and 0.0 · rotation[1][b]: the products of the structural zeros
+    /// of J in T = J W. They are ±0, but adding one can still change the sign of a zero
+    /// sum (+0 + −0 = +0), so T keeps them and stays bit-identical by construction.
+    zero_r0: [f64; 3],
+    zero_r1: [f64; 3],
+    tiles: [usize; 2],
+    /// Width and height of the tile grid in pixels (tiles · [`TILE`]).
+    grid: [f64; 2],
+    /// The constant G of the pre-cull bound λmax(T Σ Tᵀ) <= G · var_max / z².
+    cull_gain: f64,
+    width: u32,
+    height: u32,
+}
+
+impl ViewConsts {
+    fn new(cam: &ViewCamera) -> Self {
+        let [fx, fy, cx, cy] = cam.intrinsics;
+        let (w, h) = (f64::from(cam.width), f64::from(cam.height));
+        let clamp_range = |c: f64, f: f64, size: f64| {
+            let (lo, hi) = (-c / f, (size - c) / f);
+            let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+            [mid - FRUSTUM_CLAMP * half, mid + FRUSTUM_CLAMP * half]
+        };
+        let tan_x = clamp_range(cx, fx, w);
+        let tan_y = clamp_range(cy, fy, h);
+        let r = cam.rotation;
+        let (tiles_x, tiles_y) = cam.tiles();
+
+        // Pre-cull gain. With τ = the clamped x/z, y/z (|τx| <= Cx, |τy| <= Cy),
+        // J = [[fx, 0, −fx τx], [0, fy, −fy τy]] / z, and Gershgorin on J Jᵀ gives
+        // ‖J‖² <= (max(fx²(1 + Cx²), fy²(1 + Cy²)) + fx fy Cx Cy) / z²; Gershgorin on WᵀW
+        // bounds ‖W‖² (1 for a rotation, but the file's matrix is not checked to be one).
+        // λmax(T Σ Tᵀ) <= ‖J‖² ‖W‖² λmax(Σ) <= G var_max / z². The 1e-6 margin covers every
+        // rounding on both sides (each a few 1e-16 relative, or 6e-8 for var_max's f32).
+        let c_x = tan_x[0].abs().max(tan_x[1].abs());
+        let c_y = tan_y[0].abs().max(tan_y[1].abs());
+        let jj =
+            (fx * fx * (1.0 + c_x * c_x)).max(fy * fy * (1.0 + c_y * c_y)) + fx * fy * c_x * c_y;
+        let wtw = |a: usize, b: usize| r[0][a] * r[0][b] + r[1][a] * r[1][b] + r[2][a] * r[2][b];
+        let ww = (0..3)
+            .map(|a| (0..3).map(|b| wtw(a, b).abs()).sum::<f64>())
+            .fold(0.0, f64::max);
+        Self {
+            rotation: r,
+            translation: cam.translation,
+            focal: [fx, fy],
+            principal: [cx, cy],
+            tan_x,
+            tan_y,
+            zero_r0: r[0].map(|x| 0.0 * x),
+            zero_r1: r[1].map(|x| 0.0 * x),
+            tiles: [tiles_x, tiles_y],
+            grid: [(tiles_x * TILE) as f64, (tiles_y * TILE) as f64],
+            cull_gain: jj * ww * (1.0 + 1e-6),
+            width: cam.width,
+            height: cam.height,
+        }
+    }
+
+    /// Whether the 3-sigma square of [`project`] surely misses the tile grid, so that
+    /// [`project`] returns `None`; `false` decides nothing (the exact test follows).
+    ///
+    /// Why it never rejects a Gaussian that [`project`] keeps:
+    /// - its λ = mid + max(√(mid² − det), √0.1) is at most λmax(cov2d) (1 + 4e-8) + √0.1
+    ///   (4e-8: the rounding of mid² − det), and cov2d = T Σ Tᵀ + 0.3 I, so
+    ///   λ <= λmax(T Σ Tᵀ) (1 + 4e-8) + 0.6163, which is below λb = G var / z² + 0.62 (the
+    ///   1e-6 margin of G covers the 4e-8 and the rounding of λb itself);
+    /// - its radius r = ceil(3 √λ) <= 3 √λ + 1 is below rb − 1, with rb = 3 √λb + 2;
+    /// - if fl(u + rb) < 0, then u + r < −1 and its last tile floor(fl(u + r) / 16) is
+    ///   negative; if fl(u − rb) > the grid width, then u − r > grid width + 1 and its
+    ///   first tile lies past the last one; the same for v;
+    /// - NaN anywhere makes every comparison false: no pre-cull.
+    #[inline(always)]
+    fn surely_off_grid(&self, u: f64, v: f64, z: f64, var: f32) -> bool {
+        let [gw, gh] = self.grid;
+        // Gaussians centred on (or near) the grid are kept without the division below.
+        let off = u < -2.0 || v < -2.0 || u > gw + 2.0 || v > gh + 2.0;
+        off && {
+            let lambda_bound = self.cull_gain * f64::from(var) / (z * z) + 0.62;
+            let rb = SIGMA_EXTENT * lambda_bound.sqrt() + 2.0;
+            u + rb < 0.0 || u - rb > gw || v + rb < 0.0 || v - rb > gh
+        }
+    }
+
+    /// [`project`] then [`Splat::new`] for Gaussian `i` (mean `m`, [`Prepared::var_max`]
+    /// `var`), written out with the per-view constants.
+    #[inline(always)]
+    fn splat(
+        &self,
+        g: &Gaussians,
+        prep: &Prepared,
+        campos: [f64; 3],
+        i: usize,
+        m: [f32; 3],
+        var: f32,
+    ) -> Option<Splat> {
+        let mean = m.map(f64::from);
+        let (r, t) = (&self.rotation, &self.translation);
+        let cam_axis = |a: usize| r[a][0] * mean[0] + r[a][1] * mean[1] + r[a][2] * mean[2] + t[a];
+        let z = cam_axis(2);
+        if z.is_nan() || z <= NEAR_PLANE {
+            return None;
+        }
+        let (px, py) = (cam_axis(0), cam_axis(1));
+        let ([fx, fy], [cx, cy]) = (self.focal, self.principal);
+        let u = fx * px / z + cx;
+        let v = fy * py / z + cy;
+        if self.surely_off_grid(u, v, z, var) {
+            return None;
+        }
+
+        // EWA, as in `project`.
+        let tx = (px / z).clamp(self.tan_x[0], self.tan_x[1]) * z;
+        let ty = (py / z).clamp(self.tan_y[0], self.tan_y[1]) * z;
+        let z2 = z * z;
+        let (j00, j02) = (fx / z, -fx * tx / z2);
+        let (j11, j12) = (fy / z, -fy * ty / z2);
+        let t0: [f64; 3] = std::array::from_fn(|b| j00 * r[0][b] + self.zero_r1[b] + j02 * r[2][b]);
+        let t1: [f64; 3] = std::array::from_fn(|b| self.zero_r0[b] + j11 * r[1][b] + j12 * r[2][b]);
+        let [sxx, sxy, sxz, syy, syz, szz] = prep.cov3d[i];
+        let sigma = [[sxx, sxy, sxz], [sxy, syy, syz], [sxz, syz, szz]];
+        let times_sigma = |t: &[f64; 3]| -> [f64; 3] {
+            std::array::from_fn(|b| t[0] * sigma[0][b] + t[1] * sigma[1][b] + t[2] * sigma[2][b])
+        };
+        let (ts0, ts1) = (times_sigma(&t0), times_sigma(&t1));
+        let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let ca = dot(&ts0, &t0) + LOW_PASS;
+        let cb = dot(&ts0, &t1);
+        let cc = dot(&ts1, &t1) + LOW_PASS;
+        let det = ca * cc - cb * cb;
+        // `project`'s test, in fewer instructions: `x <= MAX` is `x < inf` for every x,
+        // both false for NaN (and LLVM lowers `0 < det < inf` to integer class tests).
+        let regular = det > 0.0 && det <= f64::MAX && ca.abs() <= f64::MAX && cc.abs() <= f64::MAX;
+        if !regular {
+            return None;
+        }
+        let conic = [cc / det, -cb / det, ca / det];
+        let mid = 0.5 * (ca + cc);
+        let disc = (mid * mid - det).max(0.1).sqrt();
+        let lambda = (mid + disc).max(mid - disc);
+        let radius = ceil_non_negative(SIGMA_EXTENT * lambda.sqrt());
+        let [tx0, tx1] = tile_range(u, radius, self.tiles[0])?;
+        let [ty0, ty1] = tile_range(v, radius, self.tiles[1])?;
+
+        // `Splat::new` (its opacity test is `var >= 0`, checked by the caller).
+        let [a, b, c] = conic.map(|x| x as f32);
+        let (x, y) = (u as f32, v as f32);
+        if ![x, y, a, b, c].iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        let tau = prep.tau[i];
+        let det = a * c - b * b;
+        let two_a_tau = 2.0 * a * tau as f32;
+        let inv_a = 1.0 / a;
+        let spans = a > 0.0
+            && det > 0.0
+            && det <= f32::MAX
+            && two_a_tau.abs() <= f32::MAX
+            && inv_a.abs() <= f32::MAX;
+        let slack = if spans { RECT_SLACK } else { 1.0 };
+        let ex = (2.0 * tau * ca).sqrt();
+        let ey = (2.0 * tau * cc).sqrt();
+        let [x0, x1] = rect_span(u, ex, slack, tx0, tx1, self.width)?;
+        let [y0, y1] = rect_span(v, ey, slack, ty0, ty1, self.height)?;
+        let color = match prep.color0.get(i) {
+            Some(c) => *c,
+            None => sh_color(g, campos, i, mean).map(|x| x as f32),
+        };
+        #[cfg(test)]
+        tests::trace(Projected {
+            id: i as u32,
+            center: [u, v],
+            depth: z,
+            cov2d: [ca, cb, cc],
+            conic,
+            radius,
+            tiles: [tx0, tx1, ty0, ty1],
+            color: [0.0; 3], // compared as the splat's f32 colour
+            opacity: prep.opacity[i],
+        });
+        Some(Splat {
+            x,
+            y,
+            a,
+            b,
+            c,
+            opacity: prep.opacity[i] as f32,
+            color,
+            depth: z as f32,
+            id: i as u32,
+            two_a_tau,
+            det,
+            inv_a: if spans { inv_a } else { 0.0 },
+            rect: [x0, x1, y0, y1],
+        })
+    }
+}
+
+/// The inclusive tile range of [`project`] covered by `[c − radius, c + radius]`, `None`
+/// when it misses the `n` tiles; without its floors: with y = (c ± radius) / 16,
+/// floor(y) >= 0 ⟺ y >= 0 and floor(y) <= n − 1 ⟺ y < n (both false for NaN), and on
+/// the clamped values, which are >= 0, `as u32` truncates, i.e. floors.
+#[inline(always)]
+fn tile_range(c: f64, radius: f64, n: usize) -> Option<[u32; 2]> {
+    let lo = (c - radius) / TILE as f64;
+    let hi = (c + radius) / TILE as f64;
+    let in_grid = hi >= 0.0 && lo < n as f64;
+    if !in_grid {
+        return None;
+    }
+    Some([
+        max_bound(lo, 0.0) as u32,
+        min_bound(hi, (n - 1) as f64) as u32,
+    ])
+}
+
+/// The pixel span of [`Splat::new`] along one axis, with its ceil and floor after the
+/// clamps rather than before: they commute with max/min against the integer bounds (NaN
+/// included: f64::max/min return the bound), and the clamped values lie in
+/// [0, size − 1] when the span is not empty, where `as u16` truncates exactly.
+#[inline(always)]
+fn rect_span(c: f64, e: f64, slack: f64, t0: u32, t1: u32, size: u32) -> Option<[u16; 2]> {
+    let lo = max_bound(
+        max_bound(c - e - 0.5 - slack, f64::from(t0) * TILE as f64),
+        0.0,
+    );
+    let hi = min_bound(
+        min_bound(
+            c + e - 0.5 + slack,
+            f64::from(t1) * TILE as f64 + (TILE - 1) as f64,
+        ),
+        f64::from(size) - 1.0,
+    );
+    // ceil(lo) <= floor(hi) needs lo <= hi; then 0 <= lo <= hi <= size − 1 < 2^15.
+    if lo > hi {
+        return None;
+    }
+    let (lo_floor, hi_floor) = (lo as u16, hi as u16);
+    let lo_ceil = if f64::from(lo_floor) < lo {
+        lo_floor + 1
+    } else {
+        lo_floor
+    };
+    (lo_ceil <= hi_floor).then_some([lo_ceil, hi_floor])
+}
+
+/// `x.max(bound)` for a bound that is not NaN, in one instruction (maxsd) rather than five:
+/// NaN gives the bound in both.
+#[inline(always)]
+fn max_bound(x: f64, bound: f64) -> f64 {
+    if x > bound {
+        x
+    } else {
+        bound
+    }
+}
+
+/// `x.min(bound)` for a bound that is not NaN, as [`max_bound`].
+#[inline(always)]
+fn min_bound(x: f64, bound: f64) -> f64 {
+    if x < bound {
+        x
+    } else {
+        bound
+    }
+}
+
+/// [`ceil`] of an `x >= 0` (or NaN) without the saturating float-to-int conversion: below
+/// 2^52, adding and subtracting 2^52 rounds x to an integer exactly.
+#[inline(always)]
+fn ceil_non_negative(x: f64) -> f64 {
+    const TWO_52: f64 = 4_503_599_627_370_496.0;
+    if x < TWO_52 {
+        let r = (x + TWO_52) - TWO_52;
+        if r < x {
+            r + 1.0
+        } else {
+            r
+        }
+    } else {
+        x
+    }
+}
+
+/// The view-dependent SH colour of [`project`].
+fn sh_color(g: &Gaussians, campos: [f64; 3], i: usize, mean: [f64; 3]) -> [f64; 3] {
+    let d = [
+        mean[0] - campos[0],
+        mean[1] - campos[1],
+        mean[2] - campos[2],
+    ];
+    let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    let dir = if n > 0.0 {
+        [d[0] / n, d[1] / n, d[2] / n]
+    } else {
+        [0.0, 0.0, 1.0]
+    };
+    let per = g.sh_rest_coeffs() * 3;
+    let rest = g
+        .sh_rest
+        .as_ref()
+        .map_or(&[][..], |r| &r[i * per..(i + 1) * per]);
+    eval_sh(g.sh_degree, g.sh_dc[i], rest, dir)
+}
+
 #[cfg(test)]
 mod tests {
-    use super::{ceil, floor};
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use crate::camera::{look_at, pinhole_intrinsics};
 
     #[test]
     fn floor_and_ceil_equal_libm_bit_for_bit_except_the_sign_of_zero() {
@@ -419,7 +827,451 @@ mod tests {
             // -0.0 == 0.0: the sign of a zero result is irrelevant to the callers.
             assert_eq!(floor(v), v.floor(), "floor({v:e})");
             assert_eq!(ceil(v), v.ceil(), "ceil({v:e})");
+            if v >= 0.0 {
+                assert_eq!(ceil_non_negative(v), v.ceil(), "ceil_non_negative({v:e})");
+            }
         }
         assert!(floor(f64::NAN).is_nan() && ceil(f64::NAN).is_nan());
+        assert!(ceil_non_negative(f64::NAN).is_nan());
+    }
+
+    thread_local! {
+        /// The f64 intermediates of `ViewConsts::splat` for each splat it returns.
+        static TRACE: std::cell::RefCell<Vec<Projected>> =
+            const { std::cell::RefCell::new(Vec::new()) };
+    }
+
+    pub(super) fn trace(p: Projected) {
+        TRACE.with(|t| t.borrow_mut().push(p));
+    }
+
+    /// Bits of the f64 fields of a projection (the colour is compared in f32, as splat).
+    fn projected_bits(p: &Projected) -> Vec<u64> {
+        [p.center, [p.depth, p.radius]]
+            .iter()
+            .flatten()
+            .chain(&p.cov2d)
+            .chain(&p.conic)
+            .chain(&[p.opacity])
+            .map(|v| v.to_bits())
+            .chain(p.tiles.map(u64::from))
+            .chain([u64::from(p.id)])
+            .collect()
+    }
+
+    /// Deterministic xorshift64* numbers.
+    struct Rng(u64);
+    impl Rng {
+        fn unit(&mut self) -> f64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            (self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 / (1u64 << 53) as f64
+        }
+        fn range(&mut self, lo: f64, hi: f64) -> f64 {
+            lo + (hi - lo) * self.unit()
+        }
+        fn pick(&mut self, n: usize) -> usize {
+            ((self.unit() * n as f64) as usize).min(n - 1)
+        }
+    }
+
+    fn camera(w: u32, h: u32, intrinsics: [f64; 4], eye: [f64; 3], target: [f64; 3]) -> ViewCamera {
+        let m = look_at(eye, target, [0.0, 0.0, 1.0]).unwrap();
+        ViewCamera {
+            rotation: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
+            translation: [m[3], m[7], m[11]],
+            intrinsics,
+            width: w,
+            height: h,
+        }
+    }
+
+    /// Cameras with odd image sizes (partial tiles), a decentred principal point and
+    /// fx != fy, an axis-aligned one (exact zeros in W), and a matrix that is not a
+    /// rotation (scaled by 1.3; only finiteness is checked, so the bound must hold anyway).
+    fn cameras() -> Vec<ViewCamera> {
+        let mut cams = vec![
+            camera(
+                330,
+                250,
+                pinhole_intrinsics(330, 250, 60.0),
+                [0.0, -4.0, 1.0],
+                [0.0; 3],
+            ),
+            camera(
+                207,
+                131,
+                [150.0, 210.0, 40.0, 90.0],
+                [3.0, 1.0, 0.5],
+                [0.0, 0.0, 0.3],
+            ),
+            // Signed zeros in W (see `ViewConsts::zero_r0`).
+            ViewCamera {
+                rotation: [[1.0, -0.0, 0.0], [-0.0, 1.0, -0.0], [0.0, -0.0, 1.0]],
+                translation: [0.0, 0.0, 4.0],
+                intrinsics: pinhole_intrinsics(256, 160, 90.0),
+                width: 256,
+                height: 160,
+            },
+        ];
+        let mut scaled = cams[0];
+        scaled.rotation = scaled.rotation.map(|r| r.map(|x| 1.3 * x));
+        scaled.translation = scaled.translation.map(|x| 1.3 * x);
+        cams.push(scaled);
+        cams
+    }
+
+    /// Gaussians placed relative to each of `cams` (through their camera frame): behind
+    /// the camera, straddling the near plane, far off the image, centred just outside the
+    /// tile grid with a 3-sigma footprint that may or may not reach it, on the image, on
+    /// tile borders; with huge and tiny, isotropic and flat scales, random and identity
+    /// rotations, and opacities around 1/255 (and 0 and 1).
+    fn scene(cams: &[ViewCamera], per_camera: usize, seed: u64) -> Gaussians {
+        let mut rng = Rng(seed);
+        let mut g = Gaussians::default();
+        let (mut means, mut log_scales, mut rotations, mut logits, mut dc) =
+            (vec![], vec![], vec![], vec![], vec![]);
+        // logit(1/255) and the logits around it.
+        let edge = (1.0f64 / 254.0).ln();
+        for cam in cams.iter().take(3) {
+            let [fx, fy, cx, cy] = cam.intrinsics;
+            let (w, h) = (f64::from(cam.width), f64::from(cam.height));
+            let (gw, gh) = ((w / 16.0).ceil() * 16.0, (h / 16.0).ceil() * 16.0);
+            for i in 0..per_camera {
+                let kind = i % 8;
+                let mut log_s = rng.range(-5.0, -1.0);
+                let mut z = rng.range(0.5, 8.0);
+                let (mut u, mut v) = (rng.range(0.0, w), rng.range(0.0, h));
+                match kind {
+                    0 => z = rng.range(-3.0, 0.2), // behind or at the near plane
+                    1 => {
+                        z = rng.range(0.19, 0.6); // straddling the near plane
+                        log_s = rng.range(-3.0, 0.0);
+                    }
+                    2 => {
+                        // far off the image, huge or ordinary
+                        u = rng.range(-30.0 * w, 30.0 * w);
+                        v = rng.range(-30.0 * h, 30.0 * h);
+                        log_s = rng.range(-4.0, 3.0);
+                    }
+                    3 | 4 => {
+                        // just outside the grid: the 3-sigma radius r ≈ 3 s f / z, the
+                        // distance to the grid 0..1.3 r
+                        log_s = rng.range(-3.5, -0.5);
+                        let r = 3.0 * log_s.exp() * fx.max(fy) / z;
+                        let d = rng.range(0.0, 1.3) * r;
+                        match rng.pick(4) {
+                            0 => u = -d,
+                            1 => u = gw + d,
+                            2 => v = -d,
+                            _ => v = gh + d,
+                        }
+                    }
+                    5 => {
+                        // on tile borders
+                        u = 16.0 * (u / 16.0).round();
+                        v = 16.0 * (v / 16.0).round() + if i % 3 == 0 { 1e-3 } else { 0.0 };
+                    }
+                    6 => {
+                        log_s = if i % 5 == 0 {
+                            9.0
+                        } else {
+                            rng.range(-14.0, -9.0)
+                        }
+                    }
+                    _ => {
+                        // on the optical axis or one of its image lines
+                        match i % 3 {
+                            0 => (u, v) = (cx, cy),
+                            1 => u = cx,
+                            _ => v = cy,
+                        }
+                    }
+                }
+                let pc = [(u - cx) * z / fx, (v - cy) * z / fy, z];
+                let (r, t) = (cam.rotation, cam.translation);
+                means.push(std::array::from_fn(|a| {
+                    (0..3).map(|b| r[b][a] * (pc[b] - t[b])).sum::<f64>() as f32
+                }));
+                let flat = i % 3 == 0;
+                log_scales.push(std::array::from_fn(|a| {
+                    let extra = if flat && a == 2 {
+                        -4.0
+                    } else {
+                        rng.range(-0.3, 0.3)
+                    };
+                    (log_s + extra) as f32
+                }));
+                rotations.push(if i % 4 == 0 || kind == 7 {
+                    [1.0, 0.0, 0.0, 0.0]
+                } else {
+                    std::array::from_fn(|_| rng.range(-1.0, 1.0) as f32)
+                });
+                logits.push(match i % 13 {
+                    0 => f32::INFINITY,
+                    1 => f32::NEG_INFINITY,
+                    2..=5 => (edge + rng.range(-2e-6, 2e-6)) as f32,
+                    _ => rng.range(-4.0, 6.0) as f32,
+                });
+                dc.push(std::array::from_fn(|_| rng.range(-2.0, 2.0) as f32));
+            }
+        }
+        g.means = means.into();
+        g.log_scales = log_scales.into();
+        g.rotations = rotations.into();
+        g.opacity_logits = logits.into();
+        g.sh_dc = dc.into();
+        g
+    }
+
+    fn with_degree(g: &Gaussians, degree: usize, seed: u64) -> Gaussians {
+        let mut rng = Rng(seed);
+        let mut g = g.clone();
+        g.sh_degree = degree;
+        g.sh_rest = (degree > 0).then(|| {
+            let n = g.len() * g.sh_rest_coeffs() * 3;
+            (0..n)
+                .map(|_| rng.range(-0.5, 0.5) as f32)
+                .collect::<Vec<_>>()
+                .into()
+        });
+        g
+    }
+
+    /// The fields of a splat as bits.
+    fn bits(s: &Splat) -> Vec<u32> {
+        let mut b: Vec<u32> = [s.x, s.y, s.a, s.b, s.c, s.opacity]
+            .iter()
+            .chain(&s.color)
+            .chain(&[s.depth, s.two_a_tau, s.det, s.inv_a])
+            .map(|v| v.to_bits())
+            .collect();
+        b.push(s.id);
+        b.extend(s.rect.map(u32::from));
+        b
+    }
+
+    /// The splats of `ids` by `project` + `Splat::new`, one Gaussian at a time.
+    fn reference(
+        g: &Gaussians,
+        prep: &Prepared,
+        cam: &ViewCamera,
+        ids: Range<usize>,
+    ) -> Vec<Splat> {
+        ids.filter_map(|i| {
+            project(g, prep, cam, cam.center(), i)
+                .and_then(|p| Splat::new(&p, prep.tau[i], cam.width, cam.height))
+        })
+        .collect()
+    }
+
+    /// Chunks as `bin` makes them, plus ranges that do not start at 0 or are empty.
+    fn chunks(n: usize) -> Vec<Range<usize>> {
+        vec![0..n / 3, n / 3..n / 3, n / 3..n - 5, n - 5..n]
+    }
+
+    /// Where the two paths differ: (camera, id range, first differing position).
+    fn mismatches(
+        g: &Gaussians,
+        prep: &Prepared,
+        cams: &[ViewCamera],
+        tamper: impl Fn(&mut ViewConsts),
+    ) -> Vec<String> {
+        let mut bad = Vec::new();
+        for (c, cam) in cams.iter().enumerate() {
+            let mut view = ViewConsts::new(cam);
+            tamper(&mut view);
+            for ids in chunks(g.len()) {
+                let want = reference(g, prep, cam, ids.clone());
+                // Appends after what is there.
+                let mut got = vec![want.first().copied().unwrap_or(Splat::filler()); 2];
+                TRACE.with(|t| t.borrow_mut().clear());
+                project_chunk_with(&view, g, prep, cam.center(), ids.clone(), &mut got);
+                let got = &got[2..];
+                let (mut wb, mut gb): (Vec<_>, Vec<_>) = (
+                    want.iter()
+                        .map(|s| bits(s).iter().map(|&b| u64::from(b)).collect())
+                        .collect(),
+                    got.iter()
+                        .map(|s| bits(s).iter().map(|&b| u64::from(b)).collect())
+                        .collect(),
+                );
+                // And the f64 values behind them, which the f32 rounding would mostly hide.
+                wb.extend(want.iter().map(|s| {
+                    projected_bits(&project(g, prep, cam, cam.center(), s.id as usize).unwrap())
+                }));
+                gb.extend(
+                    TRACE.with(|t| t.borrow().iter().map(projected_bits).collect::<Vec<_>>()),
+                );
+                if wb != gb {
+                    let at = wb.iter().zip(&gb).position(|(a, b)| a != b);
+                    bad.push(format!(
+                        "camera {c}, ids {ids:?}: {} vs {} splats, first difference at {at:?}",
+                        want.len(),
+                        got.len()
+                    ));
+                }
+            }
+        }
+        bad
+    }
+
+    impl Splat {
+        fn filler() -> Splat {
+            Splat {
+                x: 1.0,
+                y: 2.0,
+                a: 3.0,
+                b: 4.0,
+                c: 5.0,
+                opacity: 0.5,
+                color: [0.1; 3],
+                depth: 7.0,
+                id: 99,
+                two_a_tau: 1.0,
+                det: 1.0,
+                inv_a: 1.0,
+                rect: [0; 4],
+            }
+        }
+    }
+
+    #[test]
+    fn chunk_projection_equals_project_then_splat_new_bit_for_bit() {
+        let cams = cameras();
+        let base = scene(&cams, 1200, 7);
+        for degree in 0..=3 {
+            let g = with_degree(&base, degree, 100 + degree as u64);
+            let prep = prepare(&g).unwrap();
+            assert_eq!(prep.color0.len(), if degree == 0 { g.len() } else { 0 });
+            let bad = mismatches(&g, &prep, &cams, |_| {});
+            assert!(bad.is_empty(), "SH degree {degree}: {bad:#?}");
+        }
+    }
+
+    /// The scene exercises every branch: survivors, near-plane culls, exact culls of
+    /// Gaussians whose centre lies off the grid, pre-culls, never-drawn opacities; and
+    /// the comparison above has the power to catch a pre-cull bound that is too tight
+    /// (its gain scaled by 0.6, where this scene needs 0.68; the additive margins of the
+    /// bound cannot be caught end to end: `Splat::new` rejects those Gaussians anyway).
+    #[test]
+    fn the_scene_exercises_the_pre_cull_and_a_too_tight_bound_is_caught() {
+        let cams = cameras();
+        let g = with_degree(&scene(&cams, 1200, 7), 0, 1);
+        let prep = prepare(&g).unwrap();
+        let n = g.len();
+        for cam in &cams {
+            let view = ViewConsts::new(cam);
+            let kept = reference(&g, &prep, cam, 0..n);
+            let kept_ids: std::collections::HashSet<u32> = kept.iter().map(|s| s.id).collect();
+            let (mut near, mut pre_culled, mut off_kept, mut off_exact_culled, mut never) =
+                (0, 0, 0, 0, 0);
+            for i in 0..n {
+                if prep.var_max[i] < 0.0 {
+                    never += 1;
+                    continue;
+                }
+                let p = cam.to_camera(g.means[i].map(f64::from));
+                if p[2] <= NEAR_PLANE {
+                    near += 1;
+                    continue;
+                }
+                let [fx, fy, cx, cy] = cam.intrinsics;
+                let (u, v) = (fx * p[0] / p[2] + cx, fy * p[1] / p[2] + cy);
+                let off_grid =
+                    u < -2.0 || v < -2.0 || u > view.grid[0] + 2.0 || v > view.grid[1] + 2.0;
+                if view.surely_off_grid(u, v, p[2], prep.var_max[i]) {
+                    pre_culled += 1;
+                    assert!(!kept_ids.contains(&(i as u32)), "pre-culled {i} is kept");
+                } else if off_grid && kept_ids.contains(&(i as u32)) {
+                    off_kept += 1;
+                } else if off_grid {
+                    off_exact_culled += 1;
+                }
+            }
+            let counts = [
+                kept.len(),
+                near,
+                pre_culled,
+                off_kept,
+                off_exact_culled,
+                never,
+            ];
+            assert!(counts.iter().all(|&c| c >= 20), "{counts:?}");
+        }
+        let too_tight = mismatches(&g, &prep, &cams, |v| v.cull_gain *= 0.6);
+        assert!(!too_tight.is_empty());
+    }
+
+    /// `tile_range` and `rect_span` drop floors and ceils that `project` and `Splat::new`
+    /// take; compare with those formulas where it matters: integers, half-integers and
+    /// their neighbours, NaN, infinities, huge values.
+    #[test]
+    fn floor_free_tile_and_rect_ranges_equal_the_floored_formulas() {
+        let reference_tiles = |c: f64, radius: f64, n: usize| -> Option<[u32; 2]> {
+            let lo = floor((c - radius) / TILE as f64);
+            let hi = floor((c + radius) / TILE as f64);
+            let last = (n - 1) as f64;
+            if !(hi >= 0.0 && lo <= last) {
+                return None;
+            }
+            Some([lo.max(0.0) as u32, hi.min(last) as u32])
+        };
+        let reference_rect = |c: f64, e: f64, slack: f64, t0: u32, t1: u32, size: u32| {
+            let lo = ceil(c - e - 0.5 - slack);
+            let hi = floor(c + e - 0.5 + slack);
+            let lo = lo.max(f64::from(t0) * TILE as f64).max(0.0);
+            let hi = hi
+                .min(f64::from(t1) * TILE as f64 + (TILE - 1) as f64)
+                .min(f64::from(size) - 1.0);
+            (lo <= hi).then_some([lo as u16, hi as u16])
+        };
+        let mut xs = vec![
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            1e300,
+            -1e300,
+            0.0,
+            -0.0,
+        ];
+        for k in -40..80 {
+            let base = f64::from(k) * 8.0;
+            for d in [0.0, 0.5, 1.0 / 64.0, -1.0 / 64.0, 1e-9, -1e-9, 3.7, -3.7] {
+                xs.push(base + d);
+                xs.push(base + d + 0.5);
+            }
+        }
+        let radii = [3.0, 4.0, 16.0, 17.0, 100.0, 1e300, f64::INFINITY];
+        let (mut checked, mut some) = (0, 0);
+        for &c in &xs {
+            for &r in &radii {
+                for n in [1, 3, 20] {
+                    let want = reference_tiles(c, r, n);
+                    assert_eq!(tile_range(c, r, n), want, "tile_range({c}, {r}, {n})");
+                    checked += 1;
+                    some += usize::from(want.is_some());
+                }
+            }
+            for &e in &[0.0, 0.3, 1.0, 2.5, 40.0, f64::INFINITY, f64::NAN] {
+                for slack in [RECT_SLACK, 1.0] {
+                    for (t0, t1, size) in [(0, 0, 7), (0, 2, 40), (1, 3, 64), (2, 19, 300)] {
+                        let want = reference_rect(c, e, slack, t0, t1, size);
+                        let got = rect_span(c, e, slack, t0, t1, size);
+                        assert_eq!(
+                            got, want,
+                            "rect_span({c}, {e}, {slack}, {t0}, {t1}, {size})"
+                        );
+                        checked += 1;
+                        some += usize::from(want.is_some());
+                    }
+                }
+            }
+        }
+        assert!(
+            some > checked / 10 && some < checked - checked / 10,
+            "{some} of {checked}"
+        );
     }
 }

@@ -9,7 +9,7 @@ use wide::f32x4;
 
 use crate::camera::ViewCamera;
 use crate::error::{RasterError, Result};
-use crate::project::{prepare, project, Prepared, Projected, Splat};
+use crate::project::{prepare, project, project_chunk, Prepared, Projected, Splat};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::avx512::F32x16;
 use crate::simd::{prefetch, Lanes, Level};
@@ -539,7 +539,6 @@ impl<'g> Rasterizer<'g> {
     /// 64-byte splats around, and are gathered once into depth order.
     fn bin(&self, cam: &ViewCamera, s: &mut ViewScratch) {
         let campos = cam.center();
-        let (w, h) = (cam.width, cam.height);
         let chunks = self.len().div_ceil(PROJECT_CHUNK);
         s.chunks.resize_with(chunks, Default::default);
         s.chunks
@@ -548,10 +547,7 @@ impl<'g> Rasterizer<'g> {
             .for_each(|(c, (out, keys))| {
                 out.clear();
                 let ids = c * PROJECT_CHUNK..((c + 1) * PROJECT_CHUNK).min(self.len());
-                out.extend(ids.filter_map(|i| {
-                    project(self.gaussians, &self.prep, cam, campos, i)
-                        .and_then(|p| Splat::new(&p, self.prep.tau[i], w, h))
-                }));
+                project_chunk(self.gaussians, &self.prep, cam, campos, ids, out);
                 keys.clear();
                 keys.extend(out.iter().enumerate().map(|(i, sp)| depth_key(sp, c, i)));
             });
