@@ -369,28 +369,33 @@ pub(crate) struct ViewContext<'a> {
     view: usize,
 }
 
-/// Buffers of one view, reused from view to view.
+/// The per-tile-row outputs of one view (records, masses, counters), reused from view to
+/// view. Separate from the [`Accumulator`], so that one view's rows can be merged into W
+/// while the next view's tiles fill another `ViewRows`.
 #[derive(Debug, Default)]
-struct ViewScratch {
-    rows: Vec<RowOutput>,
-    sorted: Vec<Record>,
-}
+pub(crate) struct ViewRows(Vec<RowOutput>);
 
-impl ViewScratch {
-    fn heap_bytes(&self) -> usize {
-        let rec = std::mem::size_of::<Record>();
-        self.rows
+impl ViewRows {
+    /// The rows, cleared, for a tile source to fill through [`ViewContext::sum_tile`].
+    pub(crate) fn begin(&mut self) -> &mut Vec<RowOutput> {
+        for row in &mut self.0 {
+            row.reset();
+        }
+        &mut self.0
+    }
+
+    pub(crate) fn heap_bytes(&self) -> usize {
+        self.0
             .iter()
-            .map(|r| r.records.capacity() * rec + r.mass.capacity() * 16)
-            .sum::<usize>()
-            + self.sorted.capacity() * rec
+            .map(|r| r.records.capacity() * std::mem::size_of::<Record>() + r.mass.capacity() * 16)
+            .sum()
     }
 }
 
 /// W (Gaussian x group, sparse) and the mask masses, accumulated in exact fixed point
 /// ([`WEIGHT_SCALE`]), so the result does not depend on the order of views, pixels or
 /// threads. Memory: 4 bytes per Gaussian, 24 per nonzero (Gaussian, group) pair and 16
-/// per mask, plus one view's scratch (records of its tiles) reused by every view.
+/// per mask, plus one view's records sorted by block, reused by every view.
 #[derive(Debug)]
 pub struct Accumulator {
     num_gaussians: usize,
@@ -398,7 +403,8 @@ pub struct Accumulator {
     blocks: Vec<Block>,
     mask_mass: Vec<u128>,
     counts: HitCounts,
-    scratch: ViewScratch,
+    /// A view's records, counting-sorted by block.
+    sorted: Vec<Record>,
 }
 
 impl Accumulator {
@@ -414,7 +420,7 @@ impl Accumulator {
             blocks,
             mask_mass: vec![0; num_masks],
             counts: HitCounts::default(),
-            scratch: ViewScratch::default(),
+            sorted: Vec::new(),
         }
     }
 
@@ -429,9 +435,9 @@ impl Accumulator {
             + self.mask_mass.capacity() * std::mem::size_of::<u128>()
     }
 
-    /// Bytes of the per-view scratch, reused by every view.
+    /// Bytes of the per-view scratch (a view's sorted records), reused by every view.
     pub fn scratch_bytes(&self) -> usize {
-        self.scratch.heap_bytes()
+        self.sorted.capacity() * std::mem::size_of::<Record>()
     }
 
     /// Counters summed over the views accumulated so far.
@@ -481,22 +487,16 @@ impl Accumulator {
         })
     }
 
-    /// The per-tile-row outputs of a new view, cleared, for the tile source to fill
-    /// (through [`ViewContext::sum_tile`]) and [`Accumulator::end_view`] to add.
-    pub(crate) fn begin_view(&mut self) -> &mut Vec<RowOutput> {
-        for row in &mut self.scratch.rows {
-            row.reset();
-        }
-        &mut self.scratch.rows
-    }
-
     /// Adds what the tiles of the view produced: μ(m) += Σ_t ω over every labelled pixel,
     /// and W[g, group(m)] += ω for every top-K hit g of every pixel whose mask m has a
     /// group.
-    pub(crate) fn end_view(&mut self, ctx: &ViewContext<'_>) -> Result<HitCounts, String> {
-        let scratch = &mut self.scratch;
+    pub(crate) fn end_view(
+        &mut self,
+        ctx: &ViewContext<'_>,
+        rows: &ViewRows,
+    ) -> Result<HitCounts, String> {
         let mut counts = HitCounts::default();
-        for row in &scratch.rows {
+        for row in &rows.0 {
             if let Some(e) = &row.error {
                 return Err(format!("view {}: {e}", ctx.view));
             }
@@ -505,12 +505,13 @@ impl Accumulator {
                 *m += *q;
             }
         }
-        let bounds = bucket_by_block(&scratch.rows, &mut scratch.sorted, self.blocks.len());
+        let bounds = bucket_by_block(&rows.0, &mut self.sorted, self.blocks.len());
+        let sorted = &self.sorted;
         let jobs: Vec<_> = self
             .blocks
             .iter_mut()
             .zip(bounds.windows(2))
-            .map(|(block, w)| (block, &scratch.sorted[w[0]..w[1]]))
+            .map(|(block, w)| (block, &sorted[w[0]..w[1]]))
             .collect();
         jobs.into_par_iter().for_each(|(block, records)| {
             for r in records {
@@ -549,7 +550,8 @@ impl Accumulator {
                 hits.k
             ));
         }
-        let rows = self.begin_view();
+        let mut view_rows = ViewRows::default();
+        let rows = view_rows.begin();
         rows.resize_with(ctx.height.div_ceil(TILE), RowOutput::default);
         rows.par_iter_mut().enumerate().for_each(|(ty, out)| {
             for x0 in (0..ctx.width).step_by(TILE) {
@@ -567,7 +569,7 @@ impl Accumulator {
                 ctx.sum_tile(&tile, out);
             }
         });
-        self.end_view(&ctx)
+        self.end_view(&ctx, &view_rows)
     }
 
     /// W[g, group] += q (merging partial sums).

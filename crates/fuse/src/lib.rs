@@ -106,7 +106,7 @@ pub use finish::{finish, group_descriptors, Precision, Registration, Summary, EP
 pub use groups::{Grouping, Groups, Orphans, NO_GROUP};
 pub use partial::{merge, PartialSums, Timings, PARTIAL_FORMAT, PARTIAL_VERSION};
 
-use accumulate::{Accumulator, LabelPlane, TileHits};
+use accumulate::{Accumulator, LabelPlane, TileHits, ViewContext, ViewRows};
 
 /// Top-K of the paper (K = 10 saturates with proposals, Table topk_miou).
 pub const DEFAULT_K: usize = 10;
@@ -290,6 +290,23 @@ pub fn grid_camera(
     Ok(cam)
 }
 
+/// Completes a view's report with the accumulator's state after it was merged, and adds
+/// its times to `timings`.
+fn finish_report(
+    mut report: ViewReport,
+    acc: &Accumulator,
+    rows: &[ViewRows; 2],
+    timings: &mut Timings,
+) -> ViewReport {
+    report.nnz = acc.nnz();
+    report.accumulator_bytes = acc.heap_bytes();
+    report.view_buffer_bytes =
+        acc.scratch_bytes() + rows.iter().map(ViewRows::heap_bytes).sum::<usize>();
+    timings.raster_s += report.raster_s;
+    timings.accumulate_s += report.accumulate_s;
+    report
+}
+
 /// Renders `views` one at a time at the mask grid with top-K `k` and accumulates the mask
 /// masses and W into exact partial sums; `progress` is called after every view.
 pub fn accumulate(
@@ -339,7 +356,12 @@ pub fn accumulate(
     let mut scratch = ListScratch::default();
     let mut timings = Timings::default();
     let plane = masks.width * masks.height;
-    for view in views.clone() {
+    // Two sets of row buffers: view v's tile sums are merged into W (`end_view`) while
+    // view v + 1 renders into the other set. W's sums are exact and views are merged in
+    // order, so the overlap changes nothing in the result.
+    let mut rows = [ViewRows::default(), ViewRows::default()];
+    let mut pending: Option<(ViewContext<'_>, ViewReport)> = None;
+    for (i, view) in views.clone().enumerate() {
         let labels = match &masks.labels {
             Labels::U16(b) => LabelPlane::U16(&b[view * plane..(view + 1) * plane]),
             Labels::U32(b) => LabelPlane::U32(&b[view * plane..(view + 1) * plane]),
@@ -350,49 +372,78 @@ pub fn accumulate(
             raster_s: 0.0,
             accumulate_s: 0.0,
             counts: HitCounts::default(),
-            nnz: acc.nnz(),
-            accumulator_bytes: acc.heap_bytes(),
-            view_buffer_bytes: acc.scratch_bytes(),
+            nnz: 0,
+            accumulator_bytes: 0,
+            view_buffer_bytes: 0,
             render: RenderStats::default(),
         };
-        if labels.any_mask() {
-            let t0 = Instant::now();
-            let cam = grid_camera(scene.cameras, view, masks.width as u32, masks.height as u32)
-                .map_err(render_err)?;
-            let ctx = acc
-                .view_context(
-                    labels,
-                    masks.width,
-                    masks.mask_offsets[view],
-                    &groups.mask_group,
-                    masks.masks_in_view(view),
-                    k,
-                    view,
-                )
-                .map_err(bad_masks)?;
-            // Each tile's lists are summed as soon as they are rendered, while in cache.
-            report.render = raster
-                .render_tiles(
+        let [a, b] = &mut rows;
+        let (current, previous) = if i % 2 == 0 { (a, &*b) } else { (b, &*a) };
+        let merge = |acc: &mut Accumulator, pending: Option<(ViewContext<'_>, ViewReport)>| {
+            pending
+                .map(|(ctx, mut report)| {
+                    let t0 = Instant::now();
+                    report.counts = acc.end_view(&ctx, previous)?;
+                    report.accumulate_s = t0.elapsed().as_secs_f64();
+                    Ok::<_, String>(report)
+                })
+                .transpose()
+        };
+        if !labels.any_mask() {
+            // Nothing to render (a view without masks cannot contribute).
+            let merged = merge(&mut acc, pending.take()).map_err(bad_masks)?;
+            for r in merged.into_iter().chain([report]) {
+                progress(&finish_report(r, &acc, &rows, &mut timings));
+            }
+            continue;
+        }
+        let cam = grid_camera(scene.cameras, view, masks.width as u32, masks.height as u32)
+            .map_err(render_err)?;
+        let ctx = acc
+            .view_context(
+                labels,
+                masks.width,
+                masks.mask_offsets[view],
+                &groups.mask_group,
+                masks.masks_in_view(view),
+                k,
+                view,
+            )
+            .map_err(bad_masks)?;
+        let previous_view = pending.take();
+        let (merged, rendered) = rayon::join(
+            || merge(&mut acc, previous_view),
+            || {
+                let t0 = Instant::now();
+                // Each tile's lists are summed as soon as they are rendered, while in cache.
+                let stats = raster.render_tiles(
                     &cam,
                     view,
                     k,
                     &mut scratch,
-                    acc.begin_view(),
+                    current.begin(),
                     |tile, row| ctx.sum_tile(&TileHits::from(tile), row),
-                )
-                .map_err(render_err)?;
-            let t1 = Instant::now();
-            report.counts = acc.end_view(&ctx).map_err(bad_masks)?;
-            report.rendered = true;
-            report.raster_s = (t1 - t0).as_secs_f64();
-            report.accumulate_s = t1.elapsed().as_secs_f64();
-            report.nnz = acc.nnz();
-            report.accumulator_bytes = acc.heap_bytes();
-            report.view_buffer_bytes = acc.scratch_bytes();
-            timings.raster_s += report.raster_s;
-            timings.accumulate_s += report.accumulate_s;
+                );
+                (stats, t0.elapsed().as_secs_f64())
+            },
+        );
+        let merged = merged.map_err(bad_masks)?;
+        let (stats, raster_s) = rendered;
+        report.render = stats.map_err(render_err)?;
+        report.rendered = true;
+        report.raster_s = raster_s;
+        if let Some(r) = merged {
+            progress(&finish_report(r, &acc, &rows, &mut timings));
         }
-        progress(&report);
+        pending = Some((ctx, report));
+    }
+    if let Some((ctx, mut report)) = pending.take() {
+        let t0 = Instant::now();
+        // A view still pending was rendered by the last iteration.
+        let last = &rows[(views.len() - 1) % 2];
+        report.counts = acc.end_view(&ctx, last).map_err(bad_masks)?;
+        report.accumulate_s = t0.elapsed().as_secs_f64();
+        progress(&finish_report(report, &acc, &rows, &mut timings));
     }
     let t0 = Instant::now();
     let counts = acc.counts();
