@@ -549,7 +549,13 @@ fn views_without_masks_are_reported_in_order_and_change_nothing() {
     let blanked: Vec<u16> = labels
         .iter()
         .enumerate()
-        .map(|(i, l)| if matches!(i / plane, 1 | 3) { u16::MAX } else { *l })
+        .map(|(i, l)| {
+            if matches!(i / plane, 1 | 3) {
+                u16::MAX
+            } else {
+                *l
+            }
+        })
         .collect();
     let masks = Masks {
         labels: Labels::U16(blanked.into()),
@@ -648,7 +654,11 @@ fn accumulator_size_is_independent_of_the_number_of_views() {
     let mut reports = Vec::new();
     let doubled = accumulate(&scene, &groups, 10, 0..2 * v, &mut |r| reports.push(*r)).unwrap();
     let views: Vec<usize> = reports.iter().map(|r| r.view).collect();
-    assert_eq!(views, (0..2 * v).collect::<Vec<_>>(), "one report per view, in order");
+    assert_eq!(
+        views,
+        (0..2 * v).collect::<Vec<_>>(),
+        "one report per view, in order"
+    );
     let first = &reports[v - 1];
     let last = &reports[2 * v - 1];
     assert_eq!(first.nnz, last.nnz);
