@@ -307,7 +307,7 @@ struct ViewScratch {
     row_start: Vec<usize>,
     /// Per tile row, its splats in depth order: index and pixel rectangle (a copy of the
     /// rectangle, so that bucketing the row by tile column reads memory in order).
-    row_entries: Vec<(u32, [u16; 4])>,
+    row_entries: Vec<RowEntry>,
     tiles: Mutex<Vec<TileScratch>>,
 }
 
@@ -565,27 +565,82 @@ impl<'g> Rasterizer<'g> {
         }));
 
         let (_, tiles_y) = cam.tiles();
-        s.row_start.clear();
-        s.row_start.resize(tiles_y + 1, 0);
-        for sp in &s.splats {
-            for ty in usize::from(sp.rect[2]) / TILE..usize::from(sp.rect[3]) / TILE + 1 {
-                s.row_start[ty + 1] += 1;
+        bucket_by_row(
+            &s.splats,
+            tiles_y,
+            ROW_BUCKET_BLOCK,
+            &mut s.row_start,
+            &mut s.row_entries,
+        );
+    }
+}
+
+/// A tile row's entry: the splat's index in depth order and its pixel rectangle (carried
+/// along so that bucketing by tile column reads no splat).
+type RowEntry = (u32, [u16; 4]);
+
+/// Splats per job of [`bucket_by_row`] (fixed, so the jobs do not depend on the thread
+/// count; the result does not depend on them at all).
+const ROW_BUCKET_BLOCK: usize = 1 << 16;
+
+/// Lists the depth-ordered `splats` of every tile row in order: row ty's entries are
+/// `entries[start[ty]..start[ty + 1]]`. Blocks of `block` splats count their rows in
+/// parallel, then each block fills its own slice of every row (the slices follow the block
+/// order, so every row stays in depth order and the result does not depend on `block`).
+fn bucket_by_row(
+    splats: &[Splat],
+    tiles_y: usize,
+    block: usize,
+    start: &mut Vec<usize>,
+    entries: &mut Vec<RowEntry>,
+) {
+    let rows_of = |sp: &Splat| usize::from(sp.rect[2]) / TILE..usize::from(sp.rect[3]) / TILE + 1;
+    let block = block.max(1);
+    let counts: Vec<Vec<usize>> = splats
+        .par_chunks(block)
+        .map(|block| {
+            let mut n = vec![0usize; tiles_y];
+            for sp in block {
+                for c in &mut n[rows_of(sp)] {
+                    *c += 1;
+                }
             }
-        }
-        for ty in 0..tiles_y {
-            s.row_start[ty + 1] += s.row_start[ty];
-        }
-        s.row_entries.clear();
-        s.row_entries.resize(s.row_start[tiles_y], (0, [0; 4]));
-        let mut fill = s.row_start.clone();
-        for (idx, sp) in s.splats.iter().enumerate() {
-            let rows = usize::from(sp.rect[2]) / TILE..usize::from(sp.rect[3]) / TILE + 1;
-            for f in &mut fill[rows] {
-                s.row_entries[*f] = (idx as u32, sp.rect);
-                *f += 1;
-            }
+            n
+        })
+        .collect();
+    start.clear();
+    start.push(0);
+    for ty in 0..tiles_y {
+        let row: usize = counts.iter().map(|n| n[ty]).sum();
+        start.push(start[ty] + row);
+    }
+    entries.clear();
+    entries.resize(start[tiles_y], (0, [0; 4]));
+    // Carve every row into one slice per block, then hand each block its slices.
+    let mut per_block: Vec<Vec<&mut [RowEntry]>> =
+        counts.iter().map(|_| Vec::with_capacity(tiles_y)).collect();
+    let mut rest: &mut [RowEntry] = entries;
+    for ty in 0..tiles_y {
+        for (b, n) in counts.iter().enumerate() {
+            let (now, later) = std::mem::take(&mut rest).split_at_mut(n[ty]);
+            per_block[b].push(now);
+            rest = later;
         }
     }
+    splats
+        .par_chunks(block)
+        .zip(per_block)
+        .enumerate()
+        .for_each(|(b, (chunk, mut rows))| {
+            let mut fill = vec![0usize; tiles_y];
+            let first = b * block;
+            for (i, sp) in chunk.iter().enumerate() {
+                for ty in rows_of(sp) {
+                    rows[ty][fill[ty]] = ((first + i) as u32, sp.rect);
+                    fill[ty] += 1;
+                }
+            }
+        });
 }
 
 /// Output slices of one tile row (16 image rows, or fewer at the bottom).
@@ -822,7 +877,7 @@ struct Ctx<'a> {
 /// Renders the tiles of one tile row; returns its (tile, Gaussian) pair count.
 fn render_row(
     ctx: &Ctx<'_>,
-    entries: &[(u32, [u16; 4])],
+    entries: &[RowEntry],
     mut row: RowOut<'_>,
     st: &mut TileScratch,
 ) -> usize {
@@ -878,7 +933,7 @@ fn render_row(
 /// Buckets a tile row's splats (depth-sorted) by tile column, keeping the order: tile tx's
 /// splats are `list[start[tx]..start[tx + 1]]`. Returns the (tile, splat) pair count.
 fn bucket_by_tile(
-    entries: &[(u32, [u16; 4])],
+    entries: &[RowEntry],
     tiles_x: usize,
     start: &mut Vec<usize>,
     list: &mut Vec<u32>,
@@ -910,7 +965,7 @@ fn bucket_by_tile(
 /// each tile to `consume` with the row's state; returns the row's (tile, splat) pair count.
 fn consume_row<R, F>(
     ctx: &Ctx<'_>,
-    entries: &[(u32, [u16; 4])],
+    entries: &[RowEntry],
     ty: usize,
     st: &mut TileScratch,
     state: &mut R,
@@ -1417,7 +1472,7 @@ fn write_tile(ctx: &Ctx<'_>, row: &mut RowOut<'_>, [x0, x1, y0, y1]: [usize; 4],
 
 #[cfg(test)]
 mod tests {
-    use super::{depth_key, key_position, Splat, PROJECT_CHUNK};
+    use super::{bucket_by_row, depth_key, key_position, RowEntry, Splat, PROJECT_CHUNK, TILE};
 
     fn splat_at(depth: f32) -> Splat {
         Splat {
@@ -1458,5 +1513,63 @@ mod tests {
         for (key, pos) in keys {
             assert_eq!(key_position(key), pos);
         }
+    }
+
+    /// Sequential reference: every splat appended to each tile row its rectangle spans.
+    fn rows_by_sequential_append(splats: &[Splat], tiles_y: usize) -> Vec<Vec<RowEntry>> {
+        let mut rows = vec![Vec::new(); tiles_y];
+        for (i, sp) in splats.iter().enumerate() {
+            let (top, bottom) = (
+                usize::from(sp.rect[2]) / TILE,
+                usize::from(sp.rect[3]) / TILE,
+            );
+            for row in &mut rows[top..=bottom] {
+                row.push((i as u32, sp.rect));
+            }
+        }
+        rows
+    }
+
+    #[test]
+    fn row_buckets_equal_sequential_append_for_any_block_size() {
+        let tiles_y = 9;
+        let height = (tiles_y * TILE) as u32;
+        // A small LCG: deterministic rectangles of every height, some on tile borders.
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = |m: u32| {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            ((state >> 33) as u32) % m
+        };
+        let splats: Vec<Splat> = (0..500)
+            .map(|_| {
+                let y0 = next(height);
+                let y1 = (y0 + next(3 * TILE as u32 + 1)).min(height - 1);
+                let x0 = next(200);
+                Splat {
+                    rect: [x0 as u16, (x0 + next(40)) as u16, y0 as u16, y1 as u16],
+                    ..splat_at(1.0)
+                }
+            })
+            .collect();
+        let want = rows_by_sequential_append(&splats, tiles_y);
+        for block in [1, 3, 64, 499, 500, 1 << 16] {
+            let (mut start, mut entries) = (vec![7], vec![(9, [1; 4])]);
+            bucket_by_row(&splats, tiles_y, block, &mut start, &mut entries);
+            assert_eq!(start.len(), tiles_y + 1, "block {block}");
+            for (ty, row) in want.iter().enumerate() {
+                assert_eq!(
+                    &entries[start[ty]..start[ty + 1]],
+                    &row[..],
+                    "block {block}, row {ty}"
+                );
+            }
+            assert_eq!(entries.len(), want.iter().map(Vec::len).sum::<usize>());
+        }
+        // No splats: every row empty.
+        let (mut start, mut entries) = (Vec::new(), Vec::new());
+        bucket_by_row(&[], tiles_y, 4, &mut start, &mut entries);
+        assert_eq!((start, entries.len()), (vec![0; tiles_y + 1], 0));
     }
 }
