@@ -45,25 +45,34 @@
 //!   blended by one thread, with no floating-point reduction across threads: outputs are
 //!   bit-identical for any thread count. Rayon runs the tile rows in parallel; a view's
 //!   projection and sort are parallel too.
-//! * **SIMD.** The per-pixel step runs on 4-pixel groups with `wide::f32x4` (SSE2 on
-//!   x86-64, no `unsafe` here), branch-free with lane masks, and with [`math::exp`], a
-//!   polynomial `expf` accurate to ~2 ulp (the class of CUDA's `expf`) that vectorises; every
-//!   lane performs the same IEEE operations as the scalar formula, so results equal a scalar
-//!   per-pixel loop bit for bit (a unit test checks the SIMD and scalar `exp` agree on every
-//!   tested input, and the integration tests compare with a scalar brute force).
-//! * **Exact top-K.** Each pixel keeps a sorted array of at most K (id, ω) entries, held in
-//!   place in the tile's part of the view's output buffers (padded when the tile starts, so
-//!   there is no scratch copy and no per-pixel allocation), with a per-tile scratch of fill
-//!   counts and entry thresholds. A new contributor is inserted after every entry with a
-//!   weight >= its own and dropped when the list is full and its weight is <= the K-th (a
-//!   SIMD compare against the per-pixel threshold skips most of them): the result is the K
-//!   largest weights of the full contributor list, in descending order, ties in depth order
-//!   (nearer first). Pixels with fewer hits are padded with id [`NO_GAUSSIAN`] and weight 0.
-//!   The buffers take K × 8 bytes per pixel (design.md: a true top-K, not the first K hits).
+//! * **SIMD.** The per-pixel step runs on groups of pixels of one tile row, branch-free with
+//!   lane masks, and with [`math::exp`], a polynomial `expf` accurate to ~2 ulp (the class
+//!   of CUDA's `expf`) that vectorises. Two widths share one generic kernel: 4 lanes of
+//!   `wide::f32x4` (SSE2 on x86-64, NEON on aarch64; no `unsafe`) everywhere, and 16 lanes
+//!   (a whole tile row) with AVX-512 F + DQ, chosen at run time when the CPU has them (a
+//!   small `unsafe` wrapper of the intrinsics, entered only after `is_x86_feature_detected`).
+//!   Every lane performs the same IEEE operations as the scalar formula, so both widths
+//!   give the same bytes as a scalar per-pixel loop ([`Simd`] and
+//!   [`Rasterizer::set_simd`] exist to compare their speed; the tests render with both).
+//! * **Exact top-K.** While a tile is blended each pixel's list lives in the worker's tile
+//!   scratch, rank-major per lane group (rank r of all the group's pixels is one SIMD
+//!   vector), so a new contributor is inserted into every lane that wants it with one pass
+//!   of compares and blends, from the list's end up to the first rank no lane shifts into.
+//!   A SIMD compare against each pixel's K-th weight first skips most contributors. A
+//!   newcomer goes after every entry with a weight >= its own and is dropped when the list
+//!   is full and its weight is <= the K-th: the result is the K largest weights of the full
+//!   contributor list, in descending order, ties in depth order (nearer first). Pixels with
+//!   fewer hits are padded with id [`NO_GAUSSIAN`] and weight 0. A finished tile's lists
+//!   are transposed into the view's output, K × 8 bytes per pixel (design.md: a true top-K,
+//!   not the first K hits), or handed to a consumer by [`Rasterizer::render_tiles`]. A
+//!   lists-only render (no colour, depth, alpha or T) stops a pixel as soon as T <= its
+//!   K-th weight: no later ω = T·α < T can enter, so the lists are the same.
 //! * **Streaming.** [`Rasterizer::new`] does the view-independent work once;
 //!   [`Rasterizer::render_view_into`] and [`Rasterizer::for_each_view`] render one view at a
 //!   time into one reused [`ViewRender`] (outputs, binning buffers and tile scratch), so
-//!   consumers (`fuse`, `query`) never hold more than one view's top-K buffers.
+//!   consumers never hold more than one view's top-K buffers; [`Rasterizer::render_tiles`]
+//!   holds no image-sized buffer at all (fuse sums each tile's lists while they are in
+//!   cache).
 //! * **Degenerate input.** Non-finite means, scales, rotations, SH or NaN opacity logits are
 //!   a typed error naming the Gaussian ([`RasterError::NonFiniteGaussian`]); ±inf opacity
 //!   logits are accepted (opacity 1 or 0). Scales that underflow give a point Gaussian kept
