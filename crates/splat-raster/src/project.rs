@@ -305,25 +305,7 @@ pub(crate) fn project(
     let [tx0, tx1] = tile_range(u, tiles_x)?;
     let [ty0, ty1] = tile_range(v, tiles_y)?;
 
-    let color = {
-        let d = [
-            mean[0] - campos[0],
-            mean[1] - campos[1],
-            mean[2] - campos[2],
-        ];
-        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        let dir = if n > 0.0 {
-            [d[0] / n, d[1] / n, d[2] / n]
-        } else {
-            [0.0, 0.0, 1.0]
-        };
-        let per = g.sh_rest_coeffs() * 3;
-        let rest = g
-            .sh_rest
-            .as_ref()
-            .map_or(&[][..], |r| &r[i * per..(i + 1) * per]);
-        eval_sh(g.sh_degree, g.sh_dc[i], rest, dir)
-    };
+    let color = sh_color(g, campos, i, mean);
     Some(Projected {
         id: i as u32,
         center: [u, v],

@@ -667,31 +667,21 @@ fn assert_same_bytes(a: &ViewRender, b: &ViewRender, what: &str) {
         }
     }
     let bits = |v: Option<&[f32]>| v.map(|v| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>());
-    same(
-        bits(a.color()).as_deref(),
-        bits(b.color()).as_deref(),
-        &format!("{what}: colour"),
-    );
-    same(
-        bits(a.depth()).as_deref(),
-        bits(b.depth()).as_deref(),
-        &format!("{what}: depth"),
-    );
-    same(
-        bits(a.alpha()).as_deref(),
-        bits(b.alpha()).as_deref(),
-        &format!("{what}: alpha"),
-    );
-    same(
-        bits(a.transmittance()).as_deref(),
-        bits(b.transmittance()).as_deref(),
-        &format!("{what}: T"),
-    );
-    same(
-        bits(a.topk_weights()).as_deref(),
-        bits(b.topk_weights()).as_deref(),
-        &format!("{what}: weights"),
-    );
+    type Plane = fn(&ViewRender) -> Option<&[f32]>;
+    let planes: [(&str, Plane); 5] = [
+        ("colour", ViewRender::color),
+        ("depth", ViewRender::depth),
+        ("alpha", ViewRender::alpha),
+        ("T", ViewRender::transmittance),
+        ("weights", ViewRender::topk_weights),
+    ];
+    for (name, plane) in planes {
+        same(
+            bits(plane(a)).as_deref(),
+            bits(plane(b)).as_deref(),
+            &format!("{what}: {name}"),
+        );
+    }
     same(a.topk_ids(), b.topk_ids(), &format!("{what}: ids"));
     assert_eq!(a.stats(), b.stats(), "{what}: stats");
 }
