@@ -154,6 +154,23 @@ pub struct WarpGraph {
     pub extent_trim: f64,
     /// Box padding on each side, as a share of the scene diagonal.
     pub extent_pad: f64,
+    /// How masks become proposals: `links` (paper Algorithm 1 with the guard and extent
+    /// rules above) or `consensus` (view consensus over the Gaussian centres).
+    pub grouping: String,
+    /// Consensus: share of a mask's points that must carry a label in a view for the view
+    /// to observe it.
+    pub consensus_visible_ratio: f64,
+    /// Consensus: share of the labelled points one mask must hold to contain the mask.
+    pub consensus_contained_ratio: f64,
+    /// Consensus: a mask split in more than this share of its observing views is
+    /// under-segmented.
+    pub consensus_undersegment_ratio: f64,
+    /// Consensus: two clusters join when supporters >= this share of observers.
+    pub consensus_threshold: f64,
+    /// Consensus: most Gaussians tracked as points.
+    pub consensus_max_points: usize,
+    /// Consensus: unite clusters along the warp links where no view contradicts.
+    pub consensus_link_merge: bool,
 }
 
 impl Default for WarpGraph {
@@ -176,6 +193,13 @@ impl Default for WarpGraph {
             extent_merge_iou: p.extent_merge_iou.unwrap_or(0.0),
             extent_trim: p.extent_trim,
             extent_pad: p.extent_pad,
+            grouping: p.grouping.name().into(),
+            consensus_visible_ratio: p.consensus.visible_ratio,
+            consensus_contained_ratio: p.consensus.contained_ratio,
+            consensus_undersegment_ratio: p.consensus.undersegment_ratio,
+            consensus_threshold: p.consensus.consensus,
+            consensus_max_points: p.consensus.max_points,
+            consensus_link_merge: p.consensus.link_merge,
         }
     }
 }
@@ -209,7 +233,19 @@ impl WarpGraph {
                 ))
             }
         };
+        let grouping = warp_graph::Grouping::parse(&self.grouping).ok_or_else(|| {
+            config_err("warp_graph.grouping", &self.grouping, "links or consensus")
+        })?;
         Ok(warp_graph::Params {
+            grouping,
+            consensus: warp_graph::ConsensusParams {
+                visible_ratio: self.consensus_visible_ratio,
+                contained_ratio: self.consensus_contained_ratio,
+                undersegment_ratio: self.consensus_undersegment_ratio,
+                consensus: self.consensus_threshold,
+                max_points: self.consensus_max_points,
+                link_merge: self.consensus_link_merge,
+            },
             tau_alpha: self.tau_alpha,
             tau_iou: self.tau_iou,
             tau_box: self.tau_box,

@@ -428,6 +428,16 @@ fn same_view_support_counts(view_of: &[u32], links: &[Link]) -> HashMap<(u32, u3
     support
 }
 
+/// The view of every global mask.
+pub(crate) fn views_of_masks(offsets: &[u32]) -> Vec<u32> {
+    let m = offsets.last().map_or(0, |v| *v as usize);
+    let mut view_of = vec![0u32; m];
+    for (v, w) in offsets.windows(2).enumerate() {
+        view_of[w[0] as usize..w[1] as usize].fill(v as u32);
+    }
+    view_of
+}
+
 /// Connected components of the graph on all masks (global ids `0..offsets[V]`) with the
 /// given links; components are numbered by their smallest member, filtered by
 /// `s_min` / `v_min`, and the survivors renumbered 0..P in the same order.
@@ -438,12 +448,7 @@ pub(crate) fn proposals_from_links(
     extents: Option<&MaskExtents>,
     metadata: BTreeMap<String, String>,
 ) -> (Proposals, ComponentStats) {
-    let (s_min, v_min) = (params.s_min, params.v_min);
-    let m = offsets.last().map_or(0, |v| *v as usize);
-    let mut view_of = vec![0u32; m];
-    for (v, w) in offsets.windows(2).enumerate() {
-        view_of[w[0] as usize..w[1] as usize].fill(v as u32);
-    }
+    let view_of = views_of_masks(offsets);
     let rules = extents
         .filter(|_| params.extent_agreement.is_some() || params.extent_merge_iou.is_some())
         .map(|masks| ExtentRules {
@@ -453,8 +458,30 @@ pub(crate) fn proposals_from_links(
             trim: params.extent_trim,
         });
     let roots = component_roots(&view_of, links, params.same_view_support, rules.as_ref());
-    let roots_extent = (roots.extent_refused, roots.extent_merges);
-    let (roots, refused_links) = (roots.labels, roots.refused);
+    let stats = ComponentStats {
+        refused_links: roots.refused,
+        extent_refused_links: roots.extent_refused,
+        extent_merges: roots.extent_merges,
+        ..ComponentStats::default()
+    };
+    let excluded = vec![false; view_of.len()];
+    proposals_from_roots(&view_of, &roots.labels, &excluded, params, stats, metadata)
+}
+
+/// Numbers the components given by `roots` (a representative per mask) by their smallest
+/// member, drops those with fewer than `s_min` members or `v_min` views and masks flagged
+/// in `excluded` (which join no proposal), and renumbers the survivors 0..P in the same
+/// order.
+pub(crate) fn proposals_from_roots(
+    view_of: &[u32],
+    roots: &[u32],
+    excluded: &[bool],
+    params: &Params,
+    mut stats: ComponentStats,
+    metadata: BTreeMap<String, String>,
+) -> (Proposals, ComponentStats) {
+    let (s_min, v_min) = (params.s_min, params.v_min);
+    let m = view_of.len();
     // Component ids in order of first (= smallest) member; views counted as the masks
     // are visited in view order.
     let mut comp_of_root: Vec<u32> = vec![u32::MAX; m];
@@ -479,17 +506,18 @@ pub(crate) fn proposals_from_links(
             views[c] += 1;
         }
     }
-    let mut stats = ComponentStats {
-        refused_links,
-        extent_refused_links: roots_extent.0,
-        extent_merges: roots_extent.1,
-        components: size.len() as u64,
-        linked_components: size.iter().filter(|s| **s >= 2).count() as u64,
-        ..ComponentStats::default()
-    };
+    stats.components = size.len() as u64;
+    stats.linked_components = size.iter().filter(|s| **s >= 2).count() as u64;
     let mut new_id = vec![NO_PROPOSAL; size.len()];
     let (mut proposal_size, mut proposal_views) = (Vec::new(), Vec::new());
+    let mut excluded_comp = vec![false; size.len()];
+    for (mask, &c) in comp.iter().enumerate() {
+        excluded_comp[c as usize] |= excluded[mask];
+    }
     for c in 0..size.len() {
+        if excluded_comp[c] {
+            continue;
+        }
         if (size[c] as usize) < s_min {
             stats.dropped_by_s_min += 1;
         } else if (views[c] as usize) < v_min {

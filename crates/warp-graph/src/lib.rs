@@ -117,6 +117,7 @@
 //! # Ok::<(), warp_graph::WarpGraphError>(())
 //! ```
 
+mod consensus;
 mod error;
 mod extent;
 mod frame;
@@ -133,13 +134,14 @@ use std::sync::OnceLock;
 use profuse_formats::{Cameras, Gaussians, Masks, Matches, Proposals};
 use rayon::prelude::*;
 use serde::Serialize;
-use splat_raster::Rasterizer;
+use splat_raster::{DepthMode, Rasterizer, RenderOptions, ViewRender};
 
+pub use consensus::{ConsensusParams, ConsensusStats, MIN_MASK_POINTS};
 pub use error::{Result, WarpGraphError};
 pub use extent::{Extent, BINS, MIN_EXTENT_CELLS};
 pub use graph::{ComponentStats, Link, Rejections};
 pub use overlap::{CellBox, CellCounts, DirectedOverlaps, Overlap};
-pub use params::{Params, Sampling, Visibility};
+pub use params::{Grouping, Params, Sampling, Visibility};
 
 use extent::{Bounds, MaskExtents};
 use frame::Frame;
@@ -218,6 +220,10 @@ pub struct Report {
     pub edges_accepted: u64,
     /// Why the other candidates were rejected.
     pub rejections: Rejections,
+    /// How masks became proposals (`links` or `consensus`).
+    pub grouping: &'static str,
+    /// What the view-consensus grouping did (with `consensus` only).
+    pub consensus: Option<ConsensusStats>,
     /// Components before and after filtering.
     #[serde(flatten)]
     pub components: ComponentStats,
@@ -245,6 +251,8 @@ pub struct Association<'a> {
     params: Params,
     visibility: Visibility,
     depth: Option<DepthCache<'a>>,
+    /// The Gaussians (points of the consensus grouping).
+    gaussians: Option<&'a Gaussians>,
     /// The scene bounds of the extents, when the extent rules run.
     bounds: Option<Bounds>,
     /// Per view, its masks' extents once computed (empty without `bounds`).
@@ -300,6 +308,12 @@ impl<'a> Association<'a> {
             Some(g) if extent_rules && inputs.cameras.is_some() => Bounds::from_points(&g.means),
             _ => None,
         };
+        let consensus = params.grouping == Grouping::Consensus;
+        if consensus && (inputs.cameras.is_none() || inputs.gaussians.is_none()) {
+            return Err(WarpGraphError::MissingGaussians {
+                what: "the view-consensus grouping",
+            });
+        }
         let depth = if visibility.uses_depth() || bounds.is_some() {
             let (Some(cameras), Some(gaussians)) = (inputs.cameras, inputs.gaussians) else {
                 return Err(WarpGraphError::MissingGaussians {
@@ -333,6 +347,7 @@ impl<'a> Association<'a> {
             params: *params,
             visibility,
             depth,
+            gaussians: inputs.gaussians,
             bounds,
             view_extents,
         })
@@ -383,14 +398,23 @@ impl<'a> Association<'a> {
             skipped += usize::from(r.skipped);
         }
         let masks = self.frame.masks;
-        let extents = self.mask_extents()?;
-        let (proposals, components) = graph::proposals_from_links(
-            &masks.mask_offsets,
-            &edges,
-            &self.params,
-            extents.as_ref(),
-            self.metadata(),
-        );
+        let (extents, proposals, components, consensus) = match self.params.grouping {
+            Grouping::Links => {
+                let extents = self.mask_extents()?;
+                let (p, c) = graph::proposals_from_links(
+                    &masks.mask_offsets,
+                    &edges,
+                    &self.params,
+                    extents.as_ref(),
+                    self.metadata(),
+                );
+                (extents.is_some(), p, c, None)
+            }
+            Grouping::Consensus => {
+                let (p, c, s) = self.consensus_proposals(&edges)?;
+                (false, p, c, Some(s))
+            }
+        };
         let report = Report {
             views: masks.num_views(),
             masks: masks.num_masks(),
@@ -405,11 +429,13 @@ impl<'a> Association<'a> {
             mask_grid: [self.frame.mw, self.frame.mh],
             visibility: self.visibility.name(),
             sampling: self.params.sampling.name(),
-            extents: extents.is_some(),
+            extents,
             cells,
             edges_tested: tested,
             edges_accepted: edges.len() as u64,
             rejections,
+            grouping: self.params.grouping.name(),
+            consensus,
             components,
         };
         Ok(Outcome {
@@ -417,6 +443,63 @@ impl<'a> Association<'a> {
             edges,
             report,
         })
+    }
+
+    /// The proposals of the view-consensus grouping: every point labelled in every view
+    /// (views in parallel, collected in view order), then the clustering.
+    fn consensus_proposals(
+        &self,
+        links: &[Link],
+    ) -> Result<(Proposals, ComponentStats, ConsensusStats)> {
+        let f = &self.frame;
+        let (Some(cameras), Some(gaussians)) = (f.cameras, self.gaussians) else {
+            return Err(WarpGraphError::MissingGaussians {
+                what: "the view-consensus grouping",
+            });
+        };
+        let cp = &self.params.consensus;
+        let n = gaussians.len();
+        let stride = consensus::point_stride(n, cp.max_points);
+        let raster = Rasterizer::new(gaussians).map_err(|source| WarpGraphError::Raster {
+            context: "preparing the Gaussians for the top-1 renders".into(),
+            source,
+        })?;
+        let opts = RenderOptions {
+            color: false,
+            depth: DepthMode::None,
+            alpha: false,
+            transmittance: false,
+            top_k: Some(1),
+            background: [0.0; 3],
+        };
+        // Views one after another: each render is itself parallel over tiles.
+        let mut labels: Vec<Vec<u32>> = Vec::with_capacity(f.masks.num_views());
+        let mut out = ViewRender::default();
+        for v in 0..f.masks.num_views() {
+            let plane = f.label_plane(v)?;
+            let cam = grid_camera(cameras, v, f.mw, f.mh)?;
+            raster
+                .render_camera_into(&cam, v, &opts, &mut out)
+                .map_err(|source| WarpGraphError::Raster {
+                    context: format!("rendering the top-1 contributors of view {v}"),
+                    source,
+                })?;
+            let ids = out.topk_ids().unwrap_or(&[]);
+            labels.push(consensus::view_point_labels(ids, &plane, f.mw, n, stride));
+        }
+        let points = n.div_ceil(stride);
+        let offsets = &f.masks.mask_offsets;
+        let (roots, under, stats) = consensus::cluster(&labels, offsets, points, links, cp);
+        let view_of = graph::views_of_masks(offsets);
+        let (p, c) = graph::proposals_from_roots(
+            &view_of,
+            &roots,
+            &under,
+            &self.params,
+            ComponentStats::default(),
+            self.metadata(),
+        );
+        Ok((p, c, stats))
     }
 
     /// Every mask's 3D extent when the extent rules run (views in parallel, collected in
@@ -483,7 +566,7 @@ impl<'a> Association<'a> {
     /// The parameters, as the proposals file records them.
     fn metadata(&self) -> BTreeMap<String, String> {
         let p = &self.params;
-        BTreeMap::from([
+        let mut m = BTreeMap::from([
             (
                 "generator".to_string(),
                 concat!("warp-graph ", env!("CARGO_PKG_VERSION")).to_string(),
@@ -522,7 +605,31 @@ impl<'a> Association<'a> {
             ("extent_trim".to_string(), p.extent_trim.to_string()),
             ("extent_pad".to_string(), p.extent_pad.to_string()),
             ("extents".to_string(), self.bounds.is_some().to_string()),
-        ])
+        ]);
+        // Only the consensus grouping adds keys, so files of the link grouping keep their
+        // bytes.
+        if p.grouping == Grouping::Consensus {
+            let c = &p.consensus;
+            m.extend([
+                ("grouping".to_string(), p.grouping.name().to_string()),
+                (
+                    "consensus_visible_ratio".to_string(),
+                    c.visible_ratio.to_string(),
+                ),
+                (
+                    "consensus_contained_ratio".to_string(),
+                    c.contained_ratio.to_string(),
+                ),
+                (
+                    "consensus_undersegment_ratio".to_string(),
+                    c.undersegment_ratio.to_string(),
+                ),
+                ("consensus_threshold".to_string(), c.consensus.to_string()),
+                ("consensus_max_points".to_string(), c.max_points.to_string()),
+                ("consensus_link_merge".to_string(), c.link_merge.to_string()),
+            ]);
+        }
+        m
     }
 
     /// Unordered view pairs in (i, j) order, i < j.

@@ -1,5 +1,6 @@
 //! Parameters of Algorithm 1 and their defaults (with the reasons for them).
 
+use crate::consensus::ConsensusParams;
 use crate::error::{Result, WarpGraphError};
 
 /// How the label map of view j is sampled at a warped (sub-pixel) position.
@@ -60,6 +61,38 @@ impl Visibility {
     /// Whether the forward-backward test is part of this mode.
     pub fn uses_fwd_bwd(self) -> bool {
         matches!(self, Visibility::FwdBwd | Visibility::Both)
+    }
+}
+
+/// How the masks become proposals.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Grouping {
+    /// Union of the linked masks (paper Algorithm 1): plain connected components with
+    /// `same_view_support = None`, else the guarded union with the extent rules.
+    #[default]
+    Links,
+    /// View consensus over the Gaussian centres (MaskClustering-style; see the
+    /// `consensus` module docs): needs cameras and Gaussians. The warp links are still
+    /// computed and reported, but the proposals come from the consensus.
+    Consensus,
+}
+
+impl Grouping {
+    /// Name used in metadata, reports and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Grouping::Links => "links",
+            Grouping::Consensus => "consensus",
+        }
+    }
+
+    /// Parses [`Grouping::name`].
+    pub fn parse(s: &str) -> Option<Grouping> {
+        match s {
+            "links" => Some(Grouping::Links),
+            "consensus" => Some(Grouping::Consensus),
+            _ => None,
+        }
     }
 }
 
@@ -144,6 +177,10 @@ pub struct Params {
     /// Padding of every box on each side, as a share of the scene diagonal (default 0.01:
     /// planar surfaces have boxes of almost no thickness, and a box IoU needs volume).
     pub extent_pad: f64,
+    /// How masks become proposals (default [`Grouping::Links`]).
+    pub grouping: Grouping,
+    /// Parameters of [`Grouping::Consensus`].
+    pub consensus: ConsensusParams,
 }
 
 impl Default for Params {
@@ -166,6 +203,8 @@ impl Default for Params {
             extent_merge_iou: Some(0.1),
             extent_trim: 0.05,
             extent_pad: 0.01,
+            grouping: Grouping::Links,
+            consensus: ConsensusParams::default(),
         }
     }
 }
@@ -247,6 +286,20 @@ impl Params {
                 self.extent_pad.to_string(),
                 "a finite number >= 0",
             );
+        }
+        let c = &self.consensus;
+        for (name, v) in [
+            ("consensus_visible_ratio", c.visible_ratio),
+            ("consensus_contained_ratio", c.contained_ratio),
+            ("consensus_undersegment_ratio", c.undersegment_ratio),
+            ("consensus_threshold", c.consensus),
+        ] {
+            if !unit(v) {
+                return bad(name, v.to_string(), "a number in [0, 1]");
+            }
+        }
+        if c.max_points == 0 {
+            return bad("consensus_max_points", "0".into(), "an integer >= 1");
         }
         if self.depth_cache_views == 0 {
             return bad("depth_cache_views", "0".into(), "an integer >= 1");

@@ -9,8 +9,8 @@ use profuse_formats::{
     NO_PROPOSAL,
 };
 use warp_graph::{
-    build_proposals, synthetic, Association, Inputs, Outcome, Params, Sampling, Visibility,
-    WarpGraphError,
+    build_proposals, synthetic, Association, Grouping, Inputs, Outcome, Params, Sampling,
+    Visibility, WarpGraphError,
 };
 
 // ---------------------------------------------------------------------------------------
@@ -1109,6 +1109,70 @@ fn demo_scene_proposals_score_against_the_true_objects() {
         })
     };
     assert_eq!(bytes(1), bytes(4));
+}
+
+/// Harsh segmentation (35% of masks split, 30% of regions merged with a neighbour): the
+/// link grouping chains objects through the merged masks (purity 0.94 on seed 0 with the
+/// exact Gaussians), the view-consensus grouping keeps proposals purer (0.97: it drops the
+/// merged masks as under-segmented) and is deterministic across thread counts.
+#[test]
+fn consensus_grouping_stays_pure_under_harsh_segmentation() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = synth::Config::preset(synth::Preset::Demo, 0);
+    cfg.faults.p_split = 0.35;
+    cfg.faults.p_merge = 0.3;
+    synth::generate(&cfg, dir.path()).unwrap();
+    let m = Masks::read(dir.path().join("masks.safetensors")).unwrap();
+    let t = Matches::read(dir.path().join("matches.safetensors")).unwrap();
+    let cams = Cameras::read(dir.path().join("cameras.safetensors")).unwrap();
+    let g = Gaussians::read(dir.path().join("gt/gaussians.safetensors")).unwrap();
+    let truth =
+        profuse_metrics::cluster::read_mask_objects(dir.path().join("gt/mask_objects.json"))
+            .unwrap();
+    let inputs = Inputs::new(&m, &t).with_cameras(&cams).with_gaussians(&g);
+    let score = |p: &Params| {
+        let o = build_proposals(inputs, p).unwrap();
+        o.proposals.check_against(&m, "proposals").unwrap();
+        let s =
+            profuse_metrics::cluster::cluster_scores(&o.proposals.mask_proposal, &truth).unwrap();
+        eprintln!(
+            "harsh seed 0, {}: {s:?} {:?}",
+            o.report.grouping, o.report.consensus
+        );
+        (s, o)
+    };
+    let consensus = Params {
+        grouping: Grouping::Consensus,
+        ..Params::default()
+    };
+    let (links, _) = score(&Params::default());
+    let (c, o) = score(&consensus);
+    let stats = o.report.consensus.clone().unwrap();
+    assert!(stats.undersegmented > 0, "{stats:?}");
+    // Purity is what registration needs (an impure proposal gives one object's class to
+    // another); the merged masks it drops count against its ARI and completeness.
+    assert!(
+        c.purity >= 0.95 && c.purity > links.purity + 0.02,
+        "{c:?} vs {links:?}"
+    );
+    assert!(c.ari >= 0.6, "{c:?}");
+    assert_eq!(
+        o.proposals.extra.get("grouping").map(String::as_str),
+        Some("consensus")
+    );
+    let bytes = |threads| {
+        in_pool(threads, || {
+            build_proposals(inputs, &consensus)
+                .unwrap()
+                .proposals
+                .to_bytes()
+                .unwrap()
+        })
+    };
+    assert_eq!(bytes(1), bytes(4));
+    // Without Gaussians the consensus grouping has no points: a clear error.
+    let err = build_proposals(Inputs::new(&m, &t), &consensus).unwrap_err();
+    assert!(err.to_string().contains("consensus"), "{err}");
 }
 
 /// With exact masks (no faults) every proposal is pure; what remains is the fragmentation

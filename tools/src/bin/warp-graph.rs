@@ -19,7 +19,10 @@ use profuse_tools::{chatty, peak_rss_mb, run, BoxError};
 use serde_json::{json, Value};
 // rayon as re-exported by splat-raster (the tools package has no direct rayon dependency).
 use splat_raster::rayon;
-use warp_graph::{synthetic, Association, Inputs, Params, Sampling, Visibility, WarpGraphError};
+use warp_graph::{
+    synthetic, Association, ConsensusParams, Grouping, Inputs, Params, Sampling, Visibility,
+    WarpGraphError,
+};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -178,6 +181,40 @@ struct ParamArgs {
     /// Padding of the 3D boxes on each side, as a share of the scene diagonal.
     #[arg(long, default_value_t = 0.01)]
     extent_pad: f64,
+    /// How masks become proposals: `links` (the warp links of Algorithm 1, with the guard
+    /// and extent rules above) or `consensus` (view consensus over the Gaussian centres;
+    /// needs --cameras and --gaussians; see the crate README).
+    #[arg(long, value_enum, default_value = "links")]
+    grouping: GroupingArg,
+    /// Consensus: a view observes a mask when at least this share of the mask's points
+    /// carry a label there.
+    #[arg(long, default_value_t = 0.3)]
+    consensus_visible_ratio: f64,
+    /// Consensus: a mask is contained in a mask of another view when more than this share
+    /// of its labelled points there carry that mask's label.
+    #[arg(long, default_value_t = 0.8)]
+    consensus_contained_ratio: f64,
+    /// Consensus: a mask split in more than this share of the views observing it is
+    /// under-segmented and joins no proposal.
+    #[arg(long, default_value_t = 0.5)]
+    consensus_undersegment_ratio: f64,
+    /// Consensus: two clusters join when the views containing both in one mask are at
+    /// least this share of the views containing both.
+    #[arg(long, default_value_t = 0.9)]
+    consensus_threshold: f64,
+    /// Consensus: most Gaussians tracked as points (every k-th beyond; all are rendered).
+    #[arg(long, default_value_t = 200_000)]
+    consensus_max_points: usize,
+    /// Consensus: do not unite clusters along the warp links after the iterations (step 7
+    /// of the crate README's consensus rules).
+    #[arg(long)]
+    no_consensus_link_merge: bool,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum GroupingArg {
+    Links,
+    Consensus,
 }
 
 impl ParamArgs {
@@ -209,6 +246,18 @@ impl ParamArgs {
             extent_merge_iou: (self.extent_merge_iou > 0.0).then_some(self.extent_merge_iou),
             extent_trim: self.extent_trim,
             extent_pad: self.extent_pad,
+            grouping: match self.grouping {
+                GroupingArg::Links => Grouping::Links,
+                GroupingArg::Consensus => Grouping::Consensus,
+            },
+            consensus: ConsensusParams {
+                visible_ratio: self.consensus_visible_ratio,
+                contained_ratio: self.consensus_contained_ratio,
+                undersegment_ratio: self.consensus_undersegment_ratio,
+                consensus: self.consensus_threshold,
+                max_points: self.consensus_max_points,
+                link_merge: !self.no_consensus_link_merge,
+            },
         }
     }
 }

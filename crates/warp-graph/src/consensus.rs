@@ -1,0 +1,655 @@
+//! View-consensus grouping ([`Grouping::Consensus`]): the masks are clustered by how the
+//! *other* views see them, after MaskClustering (Yan et al., CVPR 2024), with the scene's
+//! Gaussian centres as its point cloud.
+//!
+//! Why: connected components over pairwise links are single linkage, so one wrong link
+//! (an under-segmented mask, a sliver that overlaps two objects) chains two objects, and
+//! by chains of such links walls, floors and furniture. View consensus asks instead, for
+//! two clusters A and B, in how many of the views that see *both* they fall into *one*
+//! mask. An under-segmented mask is one view's vote against the many views that separate
+//! the two objects, and it is recognised and removed as a voter.
+//!
+//! 1. **Points.** The Gaussians (every k-th when there are more than
+//!    [`ConsensusParams::max_points`], k the smallest stride that fits). Every view is
+//!    rendered on its mask grid with a top-1 list (splat-raster: the Gaussian with the
+//!    largest blending weight T·α of each pixel, all Gaussians taking part). In view v a
+//!    point is *seen* where it is some pixel's top contributor, and takes the label most of
+//!    those pixels carry (ties: the smaller label). Visibility thus comes from the
+//!    renderer's own occlusion, with no depth tolerance: a depth test with a relative
+//!    tolerance lets a wall behind a bookshelf 5% nearer pass as seen, and then votes the
+//!    wall into the bookshelf's mask.
+//! 2. **A mask's points** P_m: the points seen in its own view with its label.
+//! 3. **Observed and contained.** View k *observes* mask m when at least
+//!    `visible_ratio` of P_m carry a label in k (at least one point). Among those, the most
+//!    frequent label n (ties: the smaller id) *contains* m when it holds more than
+//!    `contained_ratio` of them; otherwise m is *split* in k. A mask observes and contains
+//!    itself in its own view.
+//! 4. **Under-segmented masks**: split in more than `undersegment_ratio` of the views that
+//!    observe them (or with fewer than [`MIN_MASK_POINTS`] points). They join no proposal,
+//!    and their votes are withdrawn: a mask contained in one loses that containment and the
+//!    visibility of that view.
+//! 5. **Nodes** start as the remaining masks, each with the set of views where it is
+//!    contained (its *visible* views) and the set of masks that contain it. For two nodes,
+//!    observers = |visible(A) ∩ visible(B)| and supporters = |containers(A) ∩
+//!    containers(B)|; they are *consistent* when supporters >= `consensus` · observers.
+//! 6. **Iterations** over decreasing observer thresholds (the 95th, 90th, ..., 0th
+//!    percentile of the observer counts of all node pairs with at least one observer,
+//!    linear interpolation as numpy's default; a threshold of 1 or less ends the list
+//!    below the 50th percentile and is raised to 1 above it): consistent pairs with at
+//!    least that many observers are edges, and each connected component (petgraph's
+//!    union-find) becomes one node (visible views: union; containers: union). Pairs seen
+//!    together by many views are decided first, when their evidence is strongest.
+//!
+//! All counts are integers and every step runs in a fixed order, so the result does not
+//! depend on the thread count. Memory: one label per (point, view) as u32 (V · N · 4
+//! bytes; 160 MB for 200 views of 200,000 points) plus the masks' point lists.
+//!
+//! [`Grouping::Consensus`]: crate::Grouping::Consensus
+
+use std::collections::HashMap;
+
+use petgraph::unionfind::UnionFind;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::frame::NONE;
+use crate::graph::Link;
+
+/// Pixels whose 3 × 3 neighbourhood (clipped at the image border) carries one label: only
+/// they vote, because a mask's boundary is where segmentation is least certain (jitter,
+/// a contributor straddling two regions), and small objects are mostly boundary.
+fn interior_pixels(plane: &[u32], width: usize) -> Vec<bool> {
+    if width == 0 {
+        return Vec::new();
+    }
+    let height = plane.len() / width;
+    let mut out = vec![false; plane.len()];
+    for y in 0..height {
+        for x in 0..width {
+            let l = plane[y * width + x];
+            let (x0, x1) = (x.saturating_sub(1), (x + 1).min(width - 1));
+            let (y0, y1) = (y.saturating_sub(1), (y + 1).min(height - 1));
+            out[y * width + x] = (y0..=y1).all(|yy| {
+                plane[yy * width + x0..=yy * width + x1]
+                    .iter()
+                    .all(|&m| m == l)
+            });
+        }
+    }
+    out
+}
+
+/// A mask with fewer points than this cannot be judged; it counts as under-segmented.
+pub const MIN_MASK_POINTS: usize = 5;
+
+/// Parameters of the view-consensus grouping (MaskClustering's values are the defaults).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ConsensusParams {
+    /// A view observes a mask when at least this share of the mask's points carry a label
+    /// there (MaskClustering: 0.3).
+    pub visible_ratio: f64,
+    /// A mask is contained in a mask of another view when more than this share of its
+    /// labelled points there carry that mask's label (MaskClustering: 0.8).
+    pub contained_ratio: f64,
+    /// A mask split in more than this share of the views that observe it is
+    /// under-segmented (MaskClustering: 0.3).
+    pub undersegment_ratio: f64,
+    /// Two nodes are consistent when supporters >= this · observers (MaskClustering: 0.9).
+    pub consensus: f64,
+    /// Most Gaussians tracked as points (every k-th beyond; all of them are rendered).
+    pub max_points: usize,
+    /// After the iterations, unite clusters along the accepted warp links (strongest
+    /// first) where the views hold no evidence against it: no view contains both, or the
+    /// consensus rate still holds (see the module docs, step 7).
+    pub link_merge: bool,
+}
+
+impl Default for ConsensusParams {
+    fn default() -> Self {
+        ConsensusParams {
+            visible_ratio: 0.3,
+            contained_ratio: 0.8,
+            undersegment_ratio: 0.5,
+            consensus: 0.9,
+            max_points: 200_000,
+            link_merge: true,
+        }
+    }
+}
+
+/// What the consensus grouping did, for the report.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize)]
+pub struct ConsensusStats {
+    /// Points (Gaussian centres) used.
+    pub points: u64,
+    /// Masks found under-segmented (in no proposal).
+    pub undersegmented: u64,
+    /// Observer thresholds of the iterations, in order.
+    pub thresholds: Vec<u32>,
+    /// Consistent pairs joined per iteration (edges of that iteration's graph).
+    pub edges: Vec<u64>,
+    /// Unions made by the final pass along the warp links.
+    pub link_merges: u64,
+}
+
+/// Which Gaussians are tracked as points: every `stride`-th, the smallest stride that
+/// keeps at most `max_points`.
+pub(crate) fn point_stride(gaussians: usize, max_points: usize) -> usize {
+    gaussians.div_ceil(max_points.max(1)).max(1)
+}
+
+/// The label of every tracked point in one view, from the view's top-1 render on the mask
+/// grid: `ids[p]` is the Gaussian contributing most to pixel p (or an id >= `gaussians`
+/// for none), `plane[p]` the pixel's mask label. A point takes the label most of its
+/// pixels carry (ties: the smaller label; "no mask" loses ties); a point that wins no
+/// pixel, or whose pixels mostly carry no mask, gets [`NONE`].
+pub(crate) fn view_point_labels(
+    ids: &[u32],
+    plane: &[u32],
+    width: usize,
+    gaussians: usize,
+    stride: usize,
+) -> Vec<u32> {
+    let points = gaussians.div_ceil(stride);
+    let interior = interior_pixels(plane, width);
+    let mut votes: Vec<(u32, u32)> = ids
+        .iter()
+        .zip(plane)
+        .zip(&interior)
+        .filter(|((&g, _), &inner)| {
+            inner && (g as usize) < gaussians && (g as usize).is_multiple_of(stride)
+        })
+        .map(|((&g, &l), _)| (g / stride as u32, l))
+        .collect();
+    votes.sort_unstable();
+    let mut labels = vec![NONE; points];
+    for run in votes.chunk_by(|a, b| a.0 == b.0) {
+        let mut best = (0usize, NONE);
+        for same in run.chunk_by(|a, b| a.1 == b.1) {
+            // Labels ascend within a run, so a later label wins only with more pixels.
+            if same.len() > best.0 {
+                best = (same.len(), same[0].1);
+            }
+        }
+        labels[run[0].0 as usize] = best.1;
+    }
+    labels
+}
+
+/// Per mask: the views that observe it with it contained (its visible views, as a bit
+/// set) and the global ids of the masks that contain it; `None` when under-segmented.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct MaskVotes {
+    visible: Vec<u64>,
+    containers: Vec<u32>,
+    undersegmented: bool,
+}
+
+/// Observed/contained/split for mask `m` of view `own` with point ids `pts`.
+fn mask_votes(
+    pts: &[u32],
+    own: usize,
+    global: u32,
+    labels: &[Vec<u32>],
+    offsets: &[u32],
+    p: &ConsensusParams,
+) -> MaskVotes {
+    let views = labels.len();
+    let mut visible = vec![0u64; views.div_ceil(64)];
+    let mut containers = Vec::new();
+    if pts.len() < MIN_MASK_POINTS {
+        return MaskVotes {
+            visible,
+            containers,
+            undersegmented: true,
+        };
+    }
+    let (mut observed, mut split) = (0usize, 0usize);
+    let mut counts: HashMap<u32, u32> = HashMap::new();
+    for (k, lk) in labels.iter().enumerate() {
+        if k == own {
+            observed += 1;
+            visible[k / 64] |= 1 << (k % 64);
+            containers.push(global);
+            continue;
+        }
+        counts.clear();
+        let mut labelled = 0u32;
+        for &g in pts {
+            let l = lk[g as usize];
+            if l != NONE {
+                labelled += 1;
+                *counts.entry(l).or_insert(0) += 1;
+            }
+        }
+        if labelled == 0 || (labelled as f64) < p.visible_ratio * pts.len() as f64 {
+            continue;
+        }
+        observed += 1;
+        let Some((&best, &n)) = counts.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))) else {
+            continue;
+        };
+        if f64::from(n) > p.contained_ratio * f64::from(labelled) {
+            visible[k / 64] |= 1 << (k % 64);
+            containers.push(offsets[k] + best);
+        } else {
+            split += 1;
+        }
+    }
+    let undersegmented = split as f64 > p.undersegment_ratio * observed as f64;
+    containers.sort_unstable();
+    MaskVotes {
+        visible,
+        containers,
+        undersegmented,
+    }
+}
+
+/// A cluster of masks during the iterations.
+#[derive(Debug, Clone)]
+struct Node {
+    masks: Vec<u32>,
+    visible: Vec<u64>,
+    containers: Vec<u32>,
+}
+
+fn popcount_and(a: &[u64], b: &[u64]) -> u32 {
+    a.iter().zip(b).map(|(x, y)| (x & y).count_ones()).sum()
+}
+
+/// numpy's default (linear) percentile of a histogram of integer values.
+fn percentile(hist: &[u64], q: f64) -> f64 {
+    let n: u64 = hist.iter().sum();
+    if n == 0 {
+        return 0.0;
+    }
+    let pos = q / 100.0 * (n - 1) as f64;
+    let (lo, frac) = (pos.floor() as u64, pos - pos.floor());
+    let at = |rank: u64| {
+        let mut seen = 0u64;
+        for (v, c) in hist.iter().enumerate() {
+            seen += c;
+            if seen > rank {
+                return v as f64;
+            }
+        }
+        (hist.len() - 1) as f64
+    };
+    let a = at(lo);
+    if frac == 0.0 {
+        return a;
+    }
+    a + frac * (at((lo + 1).min(n - 1)) - a)
+}
+
+/// The observer thresholds of the iterations (MaskClustering's rule, see the module docs).
+fn observer_thresholds(nodes: &[Node], views: usize) -> Vec<u32> {
+    let mut hist = (0..nodes.len())
+        .into_par_iter()
+        .map(|a| {
+            let mut h = vec![0u64; views + 1];
+            for b in a + 1..nodes.len() {
+                h[popcount_and(&nodes[a].visible, &nodes[b].visible) as usize] += 1;
+            }
+            h
+        })
+        .reduce(
+            || vec![0u64; views + 1],
+            |mut x, y| {
+                x.iter_mut().zip(&y).for_each(|(p, q)| *p += q);
+                x
+            },
+        );
+    hist[0] = 0;
+    let mut out = Vec::new();
+    for q in (0..=19).map(|k| 95 - 5 * k) {
+        let mut t = percentile(&hist, f64::from(q));
+        if t <= 1.0 {
+            if q < 50 {
+                break;
+            }
+            t = 1.0;
+        }
+        // Observer counts are integers: ">= 2.5" is ">= 3".
+        out.push(t.ceil() as u32);
+    }
+    out
+}
+
+/// Sorted-set intersection size.
+fn common(a: &[u32], b: &[u32]) -> u32 {
+    let (mut i, mut j, mut n) = (0, 0, 0);
+    while i < a.len() && j < b.len() {
+        match a[i].cmp(&b[j]) {
+            std::cmp::Ordering::Less => i += 1,
+            std::cmp::Ordering::Greater => j += 1,
+            std::cmp::Ordering::Equal => {
+                n += 1;
+                i += 1;
+                j += 1;
+            }
+        }
+    }
+    n
+}
+
+/// One iteration: the consistent pairs with at least `threshold` observers, and the
+/// nodes merged along them.
+fn iterate(nodes: Vec<Node>, threshold: u32, consensus: f64, masks: usize) -> (Vec<Node>, u64) {
+    // Nodes by container: pairs sharing none have no supporter and are never consistent.
+    let mut by_container: Vec<Vec<u32>> = vec![Vec::new(); masks];
+    for (x, n) in nodes.iter().enumerate() {
+        for &c in &n.containers {
+            by_container[c as usize].push(x as u32);
+        }
+    }
+    let nodes_ref = &nodes;
+    let by_container = &by_container;
+    let edges: Vec<(u32, u32)> = (0..nodes.len())
+        .into_par_iter()
+        .flat_map_iter(|a| {
+            let na = &nodes_ref[a];
+            let mut partners: Vec<u32> = na
+                .containers
+                .iter()
+                .flat_map(|&c| by_container[c as usize].iter().copied())
+                .filter(|&b| b as usize > a)
+                .collect();
+            partners.sort_unstable();
+            partners.dedup();
+            partners
+                .into_iter()
+                .filter(|&b| {
+                    let nb = &nodes_ref[b as usize];
+                    let observers = popcount_and(&na.visible, &nb.visible);
+                    observers >= threshold.max(1)
+                        && f64::from(common(&na.containers, &nb.containers))
+                            >= consensus * f64::from(observers)
+                })
+                .map(|b| (a as u32, b))
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    let mut uf = UnionFind::<u32>::new(nodes.len());
+    for &(a, b) in &edges {
+        uf.union(a, b);
+    }
+    let roots = uf.into_labeling();
+    // New nodes in order of their first (smallest-index) old node, which keeps them in
+    // order of their smallest mask.
+    let mut slot: Vec<u32> = vec![u32::MAX; nodes.len()];
+    let mut merged: Vec<Node> = Vec::new();
+    for (x, n) in nodes.into_iter().enumerate() {
+        let r = roots[x] as usize;
+        if slot[r] == u32::MAX {
+            slot[r] = merged.len() as u32;
+            merged.push(n);
+            continue;
+        }
+        let m = &mut merged[slot[r] as usize];
+        m.masks.extend(n.masks);
+        m.visible
+            .iter_mut()
+            .zip(&n.visible)
+            .for_each(|(p, q)| *p |= q);
+        m.containers.extend(n.containers);
+    }
+    for m in &mut merged {
+        m.masks.sort_unstable();
+        m.containers.sort_unstable();
+        m.containers.dedup();
+    }
+    (merged, edges.len() as u64)
+}
+
+/// Step 7: the warp links between clusters, strongest first (the smaller IoU of the two
+/// directions, ties by mask ids), unite them when no view contradicts: observers = 0, or
+/// supporters >= `consensus` · observers with the clusters as they are at that moment.
+/// Points are sparse where surfaces have little texture (a floor, a plain wall), so such
+/// masks are observed by few views and the iterations leave them apart, while the dense
+/// warps still see them overlap. Links of under-segmented masks take no part.
+fn merge_along_links(
+    nodes: Vec<Node>,
+    links: &[Link],
+    under: &[bool],
+    consensus: f64,
+) -> (Vec<Node>, u64) {
+    let mut node_of = vec![u32::MAX; under.len()];
+    for (x, n) in nodes.iter().enumerate() {
+        for &m in &n.masks {
+            node_of[m as usize] = x as u32;
+        }
+    }
+    let mut order: Vec<&Link> = links
+        .iter()
+        .filter(|l| l.masks.iter().all(|&m| !under[m as usize]))
+        .collect();
+    order.sort_by(|p, q| q.iou.total_cmp(&p.iou).then(p.masks.cmp(&q.masks)));
+    let mut uf = UnionFind::<u32>::new(nodes.len());
+    let mut merged: Vec<Option<Node>> = nodes.into_iter().map(Some).collect();
+    let mut merges = 0u64;
+    for l in order {
+        let (a, b) = (
+            uf.find(node_of[l.masks[0] as usize]) as usize,
+            uf.find(node_of[l.masks[1] as usize]) as usize,
+        );
+        if a == b {
+            continue;
+        }
+        let (Some(na), Some(nb)) = (&merged[a], &merged[b]) else {
+            continue;
+        };
+        let observers = popcount_and(&na.visible, &nb.visible);
+        let supporters = common(&na.containers, &nb.containers);
+        if observers > 0 && f64::from(supporters) < consensus * f64::from(observers) {
+            continue;
+        }
+        uf.union(a as u32, b as u32);
+        let root = uf.find(a as u32) as usize;
+        let from = if root == a { b } else { a };
+        if let Some(n) = merged[from].take() {
+            if let Some(r) = merged[root].as_mut() {
+                r.masks.extend(n.masks);
+                r.masks.sort_unstable();
+                r.visible
+                    .iter_mut()
+                    .zip(&n.visible)
+                    .for_each(|(p, q)| *p |= q);
+                r.containers.extend(n.containers);
+                r.containers.sort_unstable();
+                r.containers.dedup();
+            }
+        }
+        merges += 1;
+    }
+    (merged.into_iter().flatten().collect(), merges)
+}
+
+/// The consensus clustering of all masks: per global mask its cluster root (a global
+/// mask id, the cluster's smallest member; under-segmented masks are their own roots and
+/// flagged), plus statistics.
+pub(crate) fn cluster(
+    labels: &[Vec<u32>],
+    offsets: &[u32],
+    points: usize,
+    links: &[Link],
+    p: &ConsensusParams,
+) -> (Vec<u32>, Vec<bool>, ConsensusStats) {
+    let views = labels.len();
+    let masks = offsets.last().map_or(0, |m| *m as usize);
+    // Every mask's points: bucket the points by their label in the mask's own view.
+    let mut mask_points: Vec<Vec<u32>> = vec![Vec::new(); masks];
+    for (v, lv) in labels.iter().enumerate() {
+        for (g, &l) in lv.iter().enumerate() {
+            if l != NONE {
+                mask_points[(offsets[v] + l) as usize].push(g as u32);
+            }
+        }
+    }
+    let view_of: Vec<usize> = (0..views)
+        .flat_map(|v| std::iter::repeat_n(v, (offsets[v + 1] - offsets[v]) as usize))
+        .collect();
+    let mut votes: Vec<MaskVotes> = (0..masks)
+        .into_par_iter()
+        .map(|m| mask_votes(&mask_points[m], view_of[m], m as u32, labels, offsets, p))
+        .collect();
+    // Withdraw the votes of under-segmented masks.
+    let under: Vec<bool> = votes.iter().map(|v| v.undersegmented).collect();
+    for v in &mut votes {
+        let mut k = 0;
+        while k < v.containers.len() {
+            let c = v.containers[k] as usize;
+            if under[c] {
+                let view = view_of[c];
+                v.visible[view / 64] &= !(1 << (view % 64));
+                v.containers.remove(k);
+            } else {
+                k += 1;
+            }
+        }
+    }
+    let mut nodes: Vec<Node> = votes
+        .into_iter()
+        .enumerate()
+        .filter(|(m, _)| !under[*m])
+        .map(|(m, v)| Node {
+            masks: vec![m as u32],
+            visible: v.visible,
+            containers: v.containers,
+        })
+        .collect();
+    let mut stats = ConsensusStats {
+        points: points as u64,
+        undersegmented: under.iter().filter(|u| **u).count() as u64,
+        thresholds: observer_thresholds(&nodes, views),
+        edges: Vec::new(),
+        link_merges: 0,
+    };
+    for &t in &stats.thresholds.clone() {
+        let (next, e) = iterate(nodes, t, p.consensus, masks);
+        nodes = next;
+        stats.edges.push(e);
+    }
+    if p.link_merge {
+        let (next, merges) = merge_along_links(nodes, links, &under, p.consensus);
+        nodes = next;
+        stats.link_merges = merges;
+    }
+    let mut root: Vec<u32> = (0..masks as u32).collect();
+    for n in &nodes {
+        let r = n.masks[0];
+        for &m in &n.masks {
+            root[m as usize] = r;
+        }
+    }
+    (root, under, stats)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentile_matches_numpy_linear() {
+        // np.percentile([1, 2, 2, 5], q) for q = 0, 50, 95, 100: 1, 2, 4.55, 5.
+        let mut hist = vec![0u64; 6];
+        for v in [1usize, 2, 2, 5] {
+            hist[v] += 1;
+        }
+        assert_eq!(percentile(&hist, 0.0), 1.0);
+        assert_eq!(percentile(&hist, 50.0), 2.0);
+        assert!((percentile(&hist, 95.0) - 4.55).abs() < 1e-12);
+        assert_eq!(percentile(&hist, 100.0), 5.0);
+    }
+
+    #[test]
+    fn points_take_the_majority_label_of_the_pixels_they_win() {
+        // Gaussians 0..6, every 2nd tracked (points 0, 1, 2 = Gaussians 0, 2, 4).
+        assert_eq!(point_stride(6, 3), 2);
+        let ids = [0, 0, 0, 2, 2, 4, 1, 1, 1, 9, 4, 4];
+        let plane = [5, 5, 7, 3, NONE, NONE, 5, 5, 5, 5, 6, 6];
+        // Width 12 and height 1: only pixels between two equal neighbours are interior
+        // (0, 8 and 11 sit at the border with one neighbour).
+        // Gaussian 0: pixels 0, 1 (label 5; pixel 2 is boundary) -> 5. Gaussian 2: pixel 3
+        // is boundary, pixel 4 interior "none" -> NONE. Gaussian 4: pixels 5 (boundary),
+        // 10 (boundary), 11 (6) -> 6. Gaussian 1 is not tracked, 9 is no Gaussian.
+        assert_eq!(view_point_labels(&ids, &plane, 12, 6, 2), vec![5, NONE, 6]);
+        // Nothing tracked wins a pixel: every point unlabelled.
+        assert_eq!(view_point_labels(&[1, 3], &[0, 0], 2, 6, 2), vec![NONE; 3]);
+    }
+
+    /// Five views see two objects (points 0-9 and 10-19). Views 0-3 separate them; view 4
+    /// has one mask over both (under-segmented). Consensus keeps the objects apart and
+    /// drops the merged mask, where plain components over "shares points" links would
+    /// join everything.
+    #[test]
+    fn an_undersegmented_mask_does_not_bridge_two_objects() {
+        let obj = |g: usize| u32::from(g >= 10);
+        let mut labels: Vec<Vec<u32>> = (0..4)
+            .map(|v| {
+                (0..20)
+                    .map(|g| if v % 2 == 0 { obj(g) } else { 1 - obj(g) })
+                    .collect()
+            })
+            .collect();
+        labels.push(vec![0; 20]);
+        let offsets = [0, 2, 4, 6, 8, 9];
+        // The merged mask links to every other mask (as a warp link would).
+        let links: Vec<Link> = (0..8)
+            .map(|m| Link {
+                masks: [m, 8],
+                iou: 0.5,
+                box_iou: 0.5,
+            })
+            .collect();
+        let (root, under, stats) =
+            cluster(&labels, &offsets, 20, &links, &ConsensusParams::default());
+        assert_eq!(
+            under,
+            vec![false, false, false, false, false, false, false, false, true]
+        );
+        // Object 0: masks 0 (v0), 3 (v1), 4 (v2), 7 (v3); object 1: 1, 2, 5, 6.
+        assert_eq!(root, vec![0, 1, 1, 0, 0, 1, 1, 0, 8]);
+        assert_eq!(stats.undersegmented, 1);
+        assert_eq!(stats.link_merges, 0);
+    }
+
+    /// A split object: view 0 has two halves, views 1-4 the whole. The halves are each
+    /// contained in the whole masks and end in one cluster; the whole masks are split in
+    /// one view of five, a minority, so none is taken for under-segmented.
+    #[test]
+    fn split_halves_join_through_the_whole_masks() {
+        let mut labels = vec![(0..20).map(|g| u32::from(g >= 10)).collect::<Vec<u32>>()];
+        labels.extend((0..4).map(|_| vec![0; 20]));
+        let offsets = [0, 2, 3, 4, 5, 6];
+        let (root, under, _) = cluster(&labels, &offsets, 20, &[], &ConsensusParams::default());
+        assert_eq!(under, vec![false; 6]);
+        assert_eq!(root, vec![0; 6]);
+    }
+
+    /// Two masks that no view observes together (disjoint point sets, as on a floor seen
+    /// in parts) are joined by a warp link only with `link_merge`.
+    #[test]
+    fn link_merge_joins_clusters_no_view_contradicts() {
+        // Points 0-9 seen only in views 0 and 1, points 10-19 only in views 2 and 3.
+        let part = |lo: usize, hi: usize| -> Vec<u32> {
+            (0..20)
+                .map(|g| if (lo..hi).contains(&g) { 0 } else { NONE })
+                .collect()
+        };
+        let labels = vec![part(0, 10), part(0, 10), part(10, 20), part(10, 20)];
+        let offsets = [0, 1, 2, 3, 4];
+        let links = [Link {
+            masks: [1, 2],
+            iou: 0.3,
+            box_iou: 0.3,
+        }];
+        let mut p = ConsensusParams::default();
+        let (root, _, stats) = cluster(&labels, &offsets, 20, &links, &p);
+        assert_eq!(root, vec![0, 0, 0, 0]);
+        assert_eq!(stats.link_merges, 1);
+        p.link_merge = false;
+        let (root, _, _) = cluster(&labels, &offsets, 20, &links, &p);
+        assert_eq!(root, vec![0, 0, 2, 2]);
+    }
+}
