@@ -59,8 +59,11 @@ PY
 fi
 # 5. point-cloud labels on the labelled mesh
 if [[ -f $S/gt/mesh.safetensors ]]; then
-    "$bin/vertex-transfer" --quiet run --gaussians "$O/gaussians.safetensors" --pq "$O/pq.safetensors" \
-        --prompts "$S/prompts.safetensors" --mesh "$S/gt/mesh.safetensors" \
-        --out "$O/vertex_labels.safetensors" >/dev/null
+    # one labelling per ScanNet class set, each with that set's vocabulary only
+    for set in 19 15 10; do
+        "$bin/vertex-transfer" --quiet run --gaussians "$O/gaussians.safetensors" --pq "$O/pq.safetensors" \
+            --prompts "$S/prompts.safetensors" --mesh "$S/gt/mesh.safetensors" --class-set "nyu$set" \
+            --out "$O/vertex_labels_nyu$set.safetensors" >/dev/null
+    done
 fi
 echo "{\"out\": \"$O\"}"

@@ -280,15 +280,16 @@ fn lerf_hand_made_two_scenes() {
         std::fs::create_dir_all(&dir).unwrap();
         let j = serde_json::json!({"info": {"name": "frame_00001.jpg", "width": 8, "height": 4},
             "objects": [
-                {"category": "cup", "segmentation": [[0, 0], [2, 0], [2, 2], [0, 2]], "bbox": [0, 0, 2, 2]},
-                {"category": "cup", "segmentation": [[4, 0], [6, 0], [6, 2], [4, 2]], "bbox": [4, 0, 6, 2]}]});
+                {"category": "cup", "segmentation": [[0, 0], [1, 0], [1, 1], [0, 1]], "bbox": [0, 0, 1, 1]},
+                {"category": "cup", "segmentation": [[4, 0], [5, 0], [5, 1], [4, 1]], "bbox": [4, 0, 5, 1]}]});
         std::fs::write(dir.join("frame_00001.json"), j.to_string()).unwrap();
         dir
     };
     let (la, lb) = (write_scene("a"), write_scene("b"));
     let (pa, pb) = (tmp.path().join("pa"), tmp.path().join("pb"));
-    // Scene a: both cups exactly → IoU 1. Scene b: 2 of the 8 cup pixels → IoU exactly
-    // 0.25, not counted by Acc@0.25.
+    // Each cup's polygon traces its 2 x 2 pixels through their coordinates (the reference
+    // rule includes the outline). Scene a: both cups exactly → IoU 1. Scene b: 2 of the 8
+    // cup pixels → IoU exactly 0.25, not counted by Acc@0.25.
     let mut cups = Mask::empty(8, 4);
     for x in [0, 1, 4, 5] {
         for y in [0, 1] {
@@ -551,4 +552,73 @@ fn bench_reports_every_metric() {
     }
     assert!(j["peak_rss_mb"].as_f64().unwrap() > 0.0);
     assert_eq!(j["lerf"]["pairs"], 3);
+}
+
+/// `metrics rasterize` agrees pixel for pixel with `cv2.fillPoly` (the LERF-OVS reference
+/// rasterisation) on thousands of random polygons: `crates/metrics/python/
+/// test_fillpoly_reference.py`. Needs python3 with numpy and opencv-python-headless
+/// (`pip install -r crates/metrics/python/requirements.txt`); skipped with a message when
+/// they are missing, unless PROFUSE_REQUIRE_PYTHON=1 (set by `.ci/run`).
+#[test]
+fn fillpoly_agrees_with_opencv() {
+    let probe = std::process::Command::new("python3")
+        .args(["-c", "import numpy, cv2"])
+        .output();
+    if !probe.map(|o| o.status.success()).unwrap_or(false) {
+        assert!(
+            std::env::var("PROFUSE_REQUIRE_PYTHON").as_deref() != Ok("1"),
+            "python3 with numpy and cv2 is required (pip install -r crates/metrics/python/requirements.txt)"
+        );
+        eprintln!("SKIPPED: python3 with numpy + cv2 not found; run `pip install -r crates/metrics/python/requirements.txt`");
+        return;
+    }
+    let out = std::process::Command::new("python3")
+        .arg("crates/metrics/python/test_fillpoly_reference.py")
+        .env("PROFUSE_RUST_METRICS", env!("CARGO_BIN_EXE_metrics"))
+        .current_dir(super::root())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "python tests failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// `metrics rasterize` prints row runs of the reference rule and rejects coordinates the
+/// reference's int32 cast would reject.
+#[test]
+fn rasterize_prints_runs_and_rejects_out_of_range_coordinates() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("p.json");
+    std::fs::write(
+        &file,
+        r#"{"cases": [{"width": 6, "height": 5, "polygon": [[1, 1], [4.9, 1], [4.9, 3], [1, 3]]}]}"#,
+    )
+    .unwrap();
+    let j = ok(&[
+        "rasterize".as_ref(),
+        "--polygons".as_ref(),
+        file.as_os_str(),
+    ]);
+    assert_eq!(j["cases"], 1);
+    assert_eq!(j["masks"][0]["pixels"], 12);
+    assert_eq!(
+        j["masks"][0]["runs"],
+        serde_json::json!([[1, 1, 5], [2, 1, 5], [3, 1, 5]])
+    );
+    std::fs::write(
+        &file,
+        r#"{"cases": [{"width": 6, "height": 5, "polygon": [[1, 1], [3e9, 1], [4, 3]]}]}"#,
+    )
+    .unwrap();
+    let out = metrics(&[
+        "rasterize".as_ref(),
+        "--polygons".as_ref(),
+        file.as_os_str(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("polygon[1]") && err.contains("int32"), "{err}");
 }

@@ -99,7 +99,9 @@ fn shell_composition_of_the_tools_equals_profuse_run_byte_for_byte() {
         "proposals.safetensors",
         "features.safetensors",
         "pq.safetensors",
-        "vertex_labels.safetensors",
+        "vertex_labels_nyu19.safetensors",
+        "vertex_labels_nyu15.safetensors",
+        "vertex_labels_nyu10.safetensors",
     ] {
         assert!(run.contains_key(Path::new(must)), "{must} missing");
     }

@@ -4,11 +4,13 @@
 //! * Ground truth: one LangSplat label JSON per evaluation frame,
 //!   `{"info": {"name", "width", "height"}, "objects": [{"category", "segmentation":
 //!   [[x, y], ...], "bbox"}]}` (extra fields are ignored). Each object's polygon is
-//!   rasterised with the pixel-centre rule of [`crate::mask`]; objects of the same
-//!   category are unioned into one mask per (frame, category).
+//!   rasterised as the reference evaluation does (LangSplat's `polygon_to_mask`:
+//!   coordinates truncated to int32, then `cv2.fillPoly`, outline included; see
+//!   [`crate::mask`]); objects of the same category are unioned into one mask per
+//!   (frame, category), as its `stack_mask` does.
 //! * Pairs: every (frame, category) of the ground truth, optionally restricted to a list
-//!   of queries. A category whose polygons cover no pixel centre has nothing to find; such
-//!   pairs are skipped and counted in `empty_gt`.
+//!   of queries. A category whose polygons cover no pixel (empty, or entirely outside the
+//!   image) has nothing to find; such pairs are skipped and counted in `empty_gt`.
 //! * Predictions: a binary mask per pair, from a [`MaskSource`]; [`PredDir`] reads
 //!   `PRED_DIR/<frame_stem>/<query_file_name(query)>.png`, where `frame_stem` is the label
 //!   file's name without `.json` (e.g. `frame_00041`) and [`query_file_name`] is the query
@@ -29,7 +31,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{invalid, io_err};
-use crate::mask::{rasterize_polygon, read_mask_png, Mask};
+use crate::mask::{fits_int32, rasterize_polygon, read_mask_png, Mask};
 use crate::{MetricsError, Result};
 
 /// IoU above which (strictly) a pair counts for Acc@0.25.
@@ -117,15 +119,20 @@ pub fn parse_label_json(text: &str, stem: String, shown: &str) -> Result<LabelFr
                 "empty, expected the query text",
             ));
         }
+        // The reference casts the coordinates to int32 with NumPy, which raises on
+        // non-finite values and on values outside int32; reject those here too.
         if let Some(k) = o
             .segmentation
             .iter()
-            .position(|p| !p.iter().all(|v| v.is_finite()))
+            .position(|p| !p.iter().all(|&v| fits_int32(v)))
         {
             return Err(invalid(
                 shown,
                 format!("objects[{i}].segmentation[{k}]"),
-                "non-finite coordinate",
+                format!(
+                    "{:?}: expected finite coordinates within int32 after truncation",
+                    o.segmentation[k]
+                ),
             ));
         }
         objects.push(LabelObject {
@@ -178,8 +185,9 @@ pub fn read_label_dir(dir: impl AsRef<Path>) -> Result<LabelScene> {
     Ok(LabelScene { name, frames })
 }
 
-/// The ground-truth mask of every category of a frame (same-category objects unioned),
-/// sorted by category.
+/// The ground-truth mask of every category of a frame (each polygon rasterised with the
+/// reference rule, [`rasterize_polygon`]; same-category objects unioned), sorted by
+/// category.
 pub fn category_masks(frame: &LabelFrame) -> BTreeMap<String, Mask> {
     let mut out: BTreeMap<String, Mask> = BTreeMap::new();
     for o in &frame.objects {
@@ -304,7 +312,7 @@ pub struct SceneScores {
     pub pairs: usize,
     /// Pairs without a prediction (scored IoU 0).
     pub missing: usize,
-    /// Ground-truth categories skipped because their polygons cover no pixel centre.
+    /// Ground-truth categories skipped because their polygons cover no pixel.
     pub empty_gt: usize,
     /// Per query, sorted by query.
     pub per_query: Vec<QueryRow>,

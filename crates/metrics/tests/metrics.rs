@@ -234,7 +234,9 @@ mod surface {
 }
 
 mod mask {
-    use profuse_metrics::mask::{rasterize_polygon, Mask};
+    use profuse_metrics::mask::{
+        fill_poly, fill_poly_as, rasterize_polygon, rasterize_polygon_centres, Mask, OpenCvFill,
+    };
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -243,6 +245,86 @@ mod mask {
             .flat_map(|y| (0..m.width).map(move |x| (x, y)))
             .filter(|&(x, y)| m.pixels[(y * m.width + x) as usize])
             .collect()
+    }
+
+    /// A mask from rows of `#` (selected) and `.`.
+    fn picture(rows: &[&str]) -> Vec<bool> {
+        rows.iter()
+            .flat_map(|r| r.chars().map(|c| c == '#'))
+            .collect()
+    }
+
+    /// The reference rule, by hand: a right triangle with legs of 4 pixels. The outline
+    /// (8-connected lines, the hypotenuse a perfect diagonal) and the inside are filled.
+    #[test]
+    fn fill_poly_triangle_by_hand() {
+        let m = fill_poly(&[[1, 1], [5, 1], [1, 5]], 7, 7);
+        let expected = picture(&[
+            ".......", ".#####.", ".####..", ".###...", ".##....", ".#.....", ".......",
+        ]);
+        assert_eq!(m.pixels, expected);
+    }
+
+    /// A rectangle traced through pixel coordinates includes its boundary pixels: corners
+    /// (1, 1) and (4, 3) give 4 x 3 pixels, not the 3 x 2 of its area.
+    #[test]
+    fn fill_poly_rectangle_includes_its_boundary() {
+        let m = fill_poly(&[[1, 1], [4, 1], [4, 3], [1, 3]], 6, 5);
+        let expected = picture(&["......", ".####.", ".####.", ".####.", "......"]);
+        assert_eq!(m.pixels, expected);
+        assert_eq!(m.count(), 12);
+        // Fractional vertices truncate toward zero first (3.9 -> 3, -0.5 -> 0).
+        let t = rasterize_polygon(&[[-0.5, -0.5], [3.9, 0.2], [3.9, 2.7], [0.9, 2.99]], 6, 5);
+        let expected = picture(&["####..", "####..", "####..", "......", "......"]);
+        assert_eq!(t.pixels, expected);
+    }
+
+    /// Clipping: a polygon entirely outside draws nothing; one covering the image fills it;
+    /// a degenerate one (a point, a segment) draws its outline only.
+    #[test]
+    fn fill_poly_outside_covering_and_degenerate() {
+        assert_eq!(fill_poly(&[[-5, -5], [-1, -5], [-1, -1]], 4, 4).count(), 0);
+        assert_eq!(fill_poly(&[[5, 0], [9, 0], [9, 3]], 4, 4).count(), 0);
+        assert_eq!(
+            fill_poly(&[[-9, -9], [9, -9], [9, 9], [-9, 9]], 4, 3).count(),
+            12
+        );
+        assert_eq!(fill_poly(&[], 4, 4).count(), 0);
+        let point = fill_poly(&[[2, 1]], 4, 4);
+        assert_eq!(point.pixels, picture(&["....", "..#.", "....", "...."]));
+        let segment = fill_poly(&[[0, 0], [3, 3]], 4, 4);
+        assert_eq!(segment.pixels, picture(&["#...", ".#..", "..#.", "...#"]));
+        // Triangles with vertices outside: the visible part. The hypotenuse x + y = 6
+        // passes through pixel (3, 3), x + y = 7 through (3, 4) and (4, 3); boundary
+        // pixels are in, so only (4, 4) of the 5 x 5 image is out.
+        let m = fill_poly(&[[0, 0], [6, 0], [0, 6]], 4, 4);
+        assert_eq!(m.count(), 16);
+        let m = fill_poly(&[[0, 0], [7, 0], [0, 7]], 5, 5);
+        assert_eq!(
+            m.pixels,
+            picture(&["#####", "#####", "#####", "#####", "####."])
+        );
+    }
+
+    /// Self-intersecting polygons fill by the even-odd rule of the scan line: this bow tie
+    /// is the left triangle (0,0)-(2,2)-(0,4) and the right one (4,0)-(2,2)-(4,4). On row
+    /// 2 the two diagonals meet at x = 2, so the spans 0..=2 and 2..=4 join; rows 0 and 4
+    /// (no active edge: rows are half-open) hold only the outline's end pixels.
+    #[test]
+    fn fill_poly_bow_tie() {
+        let m = fill_poly(&[[0, 0], [4, 4], [4, 0], [0, 4]], 5, 5);
+        let expected = picture(&["#...#", "##.##", "#####", "##.##", "#...#"]);
+        assert_eq!(m.pixels, expected, "{:?}", m.pixels);
+    }
+
+    /// The legacy variant differs only when vertices lie outside the image.
+    #[test]
+    fn fill_poly_variants_agree_inside_the_image() {
+        let poly = [[1, 2], [9, 0], [7, 8], [3, 5], [0, 9]];
+        assert_eq!(
+            fill_poly_as(&poly, 10, 10, OpenCvFill::Legacy),
+            fill_poly(&poly, 10, 10)
+        );
     }
 
     /// Per-pixel even-odd test with the crossing x by division: a reference for polygons
@@ -269,7 +351,7 @@ mod mask {
 
     #[test]
     fn pixel_aligned_square_covers_its_pixels() {
-        let m = rasterize_polygon(&[[1.0, 2.0], [4.0, 2.0], [4.0, 3.0], [1.0, 3.0]], 6, 5);
+        let m = rasterize_polygon_centres(&[[1.0, 2.0], [4.0, 2.0], [4.0, 3.0], [1.0, 3.0]], 6, 5);
         assert_eq!(selected(&m), vec![(1, 2), (2, 2), (3, 2)]);
     }
 
@@ -277,10 +359,11 @@ mod mask {
     fn square_through_pixel_centres_keeps_top_left_edges() {
         // Edges at x = 0.5, 2.5 and y = 0.5, 2.5 pass through centres: top and left
         // centres are in, right and bottom out, so 4 pixels = the square's area.
-        let m = rasterize_polygon(&[[0.5, 0.5], [2.5, 0.5], [2.5, 2.5], [0.5, 2.5]], 4, 4);
+        let m = rasterize_polygon_centres(&[[0.5, 0.5], [2.5, 0.5], [2.5, 2.5], [0.5, 2.5]], 4, 4);
         assert_eq!(selected(&m), vec![(0, 0), (1, 0), (0, 1), (1, 1)]);
         // Orientation does not matter.
-        let ccw = rasterize_polygon(&[[0.5, 0.5], [0.5, 2.5], [2.5, 2.5], [2.5, 0.5]], 4, 4);
+        let ccw =
+            rasterize_polygon_centres(&[[0.5, 0.5], [0.5, 2.5], [2.5, 2.5], [2.5, 0.5]], 4, 4);
         assert_eq!(ccw, m);
     }
 
@@ -288,7 +371,7 @@ mod mask {
     fn triangle_hand_count() {
         // x + y < 8 below the hypotenuse; centres on it (x + y + 1 = 8) lie on a
         // right/bottom edge: out. Inside: x + y <= 6, 1 + 2 + ... + 7 = 28 pixels.
-        let m = rasterize_polygon(&[[0.0, 0.0], [8.0, 0.0], [0.0, 8.0]], 8, 8);
+        let m = rasterize_polygon_centres(&[[0.0, 0.0], [8.0, 0.0], [0.0, 8.0]], 8, 8);
         assert_eq!(m.count(), 28);
         assert!(selected(&m).iter().all(|&(x, y)| x + y <= 6));
     }
@@ -298,7 +381,7 @@ mod mask {
         // |x − 2.5| + |y − 2.5| < 2 strictly: 5 centres. On the boundary: the left vertex
         // (0,2) and the two centres on the left edges (1,1), (1,3) are in; the top, right
         // and bottom vertices and the centres on the right edges are out. 8 = the area.
-        let m = rasterize_polygon(&[[2.5, 0.5], [4.5, 2.5], [2.5, 4.5], [0.5, 2.5]], 5, 5);
+        let m = rasterize_polygon_centres(&[[2.5, 0.5], [4.5, 2.5], [2.5, 4.5], [0.5, 2.5]], 5, 5);
         let mut expected = vec![
             (2, 1),
             (1, 2),
@@ -315,9 +398,10 @@ mod mask {
 
     #[test]
     fn polygons_sharing_an_edge_through_centres_partition_the_pixels() {
-        let a = rasterize_polygon(&[[0.5, 0.5], [4.5, 0.5], [4.5, 4.5]], 5, 5);
-        let b = rasterize_polygon(&[[0.5, 0.5], [4.5, 4.5], [0.5, 4.5]], 5, 5);
-        let square = rasterize_polygon(&[[0.5, 0.5], [4.5, 0.5], [4.5, 4.5], [0.5, 4.5]], 5, 5);
+        let a = rasterize_polygon_centres(&[[0.5, 0.5], [4.5, 0.5], [4.5, 4.5]], 5, 5);
+        let b = rasterize_polygon_centres(&[[0.5, 0.5], [4.5, 4.5], [0.5, 4.5]], 5, 5);
+        let square =
+            rasterize_polygon_centres(&[[0.5, 0.5], [4.5, 0.5], [4.5, 4.5], [0.5, 4.5]], 5, 5);
         assert_eq!(a.intersection(&b), 0);
         let mut u = a.clone();
         u.union_with(&b);
@@ -342,21 +426,22 @@ mod mask {
             [1.0, 1.0],
             [1.0, 0.0],
         ];
-        let m = rasterize_polygon(&poly, 4, 4);
+        let m = rasterize_polygon_centres(&poly, 4, 4);
         assert_eq!(m.count(), 12);
         assert!(!m.pixels[4 + 1] && !m.pixels[2 * 4 + 2]);
         assert_eq!(
-            rasterize_polygon(&[[0.0, 0.0], [3.0, 3.0]], 4, 4).count(),
+            rasterize_polygon_centres(&[[0.0, 0.0], [3.0, 3.0]], 4, 4).count(),
             0
         );
-        assert_eq!(rasterize_polygon(&[], 4, 4).count(), 0);
+        assert_eq!(rasterize_polygon_centres(&[], 4, 4).count(), 0);
         // Outside the image, or partly outside: clipped.
         assert_eq!(
-            rasterize_polygon(&[[-5.0, -5.0], [-1.0, -5.0], [-1.0, -1.0]], 4, 4).count(),
+            rasterize_polygon_centres(&[[-5.0, -5.0], [-1.0, -5.0], [-1.0, -1.0]], 4, 4).count(),
             0
         );
         assert_eq!(
-            rasterize_polygon(&[[-9.0, -9.0], [9.0, -9.0], [9.0, 9.0], [-9.0, 9.0]], 4, 3).count(),
+            rasterize_polygon_centres(&[[-9.0, -9.0], [9.0, -9.0], [9.0, 9.0], [-9.0, 9.0]], 4, 3)
+                .count(),
             12
         );
     }
@@ -376,7 +461,7 @@ mod mask {
                     ]
                 })
                 .collect();
-            let m = rasterize_polygon(&poly, w, h);
+            let m = rasterize_polygon_centres(&poly, w, h);
             assert_eq!(m.pixels, brute_force(&poly, w, h), "case {case}: {poly:?}");
         }
     }
@@ -389,7 +474,7 @@ mod lerf {
         evaluate_scene, grid_search, mean_over_scenes, prediction_path, query_file_name,
         read_label_dir, LabelFrame, LabelScene, PredDir,
     };
-    use profuse_metrics::mask::{rasterize_polygon, Mask};
+    use profuse_metrics::mask::{rasterize_polygon, rasterize_polygon_centres, Mask};
     use profuse_metrics::{MetricsError, Result};
 
     fn rect(x0: f64, y0: f64, x1: f64, y1: f64) -> serde_json::Value {
@@ -397,8 +482,11 @@ mod lerf {
             "bbox": [x0, y0, x1, y1]})
     }
 
+    /// A label object covering the pixels `r[0]..r[2]` x `r[1]..r[3]` (end exclusive):
+    /// the reference rule includes the traced outline, so the polygon's corners are the
+    /// first and last pixel, `[r[0], r[1]]` and `[r[2] - 1, r[3] - 1]`.
     fn object(category: &str, r: [f64; 4]) -> serde_json::Value {
-        let mut o = rect(r[0], r[1], r[2], r[3]);
+        let mut o = rect(r[0], r[1], r[2] - 1.0, r[3] - 1.0);
         o["category"] = category.into();
         o
     }
@@ -418,6 +506,16 @@ mod lerf {
             .unwrap();
     }
 
+    /// Pixels `r[0]..r[2]` x `r[1]..r[3]` (end exclusive), for predictions.
+    fn area_mask(w: u32, h: u32, r: [f64; 4]) -> Mask {
+        rasterize_polygon_centres(
+            &[[r[0], r[1]], [r[2], r[1]], [r[2], r[3]], [r[0], r[3]]],
+            w,
+            h,
+        )
+    }
+
+    /// The box with corners `r` under the reference rule (outline included).
     fn rect_mask(w: u32, h: u32, r: [f64; 4]) -> Mask {
         rasterize_polygon(
             &[[r[0], r[1]], [r[2], r[1]], [r[2], r[3]], [r[0], r[3]]],
@@ -427,8 +525,8 @@ mod lerf {
     }
 
     /// frame_a (10x10): "mug" = two 2x2 squares (8 px), "plate" = 4x1 (4 px).
-    /// frame_b (10x10): "mug" = 4x4 at the origin (16 px), "spoon" = a sliver covering
-    /// no pixel centre (skipped as empty ground truth).
+    /// frame_b (10x10): "mug" = 4x4 at the origin (16 px), "spoon" = a polygon outside
+    /// the image (covers no pixel: skipped as empty ground truth).
     fn toy_labels(dir: &Path) {
         write_label(
             dir,
@@ -448,7 +546,7 @@ mod lerf {
             10,
             vec![
                 object("mug", [0.0, 0.0, 4.0, 4.0]),
-                object("spoon", [7.0, 7.0, 7.4, 9.0]),
+                object("spoon", [11.0, 11.0, 12.4, 14.0]),
             ],
         );
     }
@@ -461,8 +559,8 @@ mod lerf {
         toy_labels(&labels);
         // frame_a mug: the first square plus 2 px of background → IoU 4/10, and the
         // second square must count as ground truth too (union), so not 4/6.
-        let mut m = rect_mask(10, 10, [0.0, 0.0, 2.0, 2.0]);
-        m.union_with(&rect_mask(10, 10, [2.0, 0.0, 3.0, 2.0]));
+        let mut m = area_mask(10, 10, [0.0, 0.0, 2.0, 2.0]);
+        m.union_with(&area_mask(10, 10, [2.0, 0.0, 3.0, 2.0]));
         write_png(&prediction_path(&pred, "frame_a", "mug"), &m);
         // frame_a plate: an all-zero prediction → IoU 0, not missing.
         write_png(
@@ -472,7 +570,7 @@ mod lerf {
         // frame_b mug: 4 of 16 px → IoU exactly 0.25, which does NOT count for Acc@0.25.
         write_png(
             &prediction_path(&pred, "frame_b", "mug"),
-            &rect_mask(10, 10, [0.0, 0.0, 2.0, 2.0]),
+            &area_mask(10, 10, [0.0, 0.0, 2.0, 2.0]),
         );
         // frame_b spoon: no file (and empty ground truth anyway).
         let scene = read_label_dir(&labels).unwrap();
@@ -584,7 +682,7 @@ mod lerf {
             )
             .unwrap();
             for (o, j) in frame.objects.iter().zip(raw["objects"].as_array().unwrap()) {
-                let m = rasterize_polygon(&o.polygon, frame.width, frame.height);
+                let m = rasterize_polygon_centres(&o.polygon, frame.width, frame.height);
                 assert_eq!(
                     m.count(),
                     j["area"].as_u64().unwrap(),

@@ -4,7 +4,6 @@
 use std::collections::BTreeMap;
 
 use profuse_formats::{FileKind, Gaussians, Proposals, VertexLabels};
-use profuse_metrics::scannet::ClassSet;
 use serde_json::{json, Value};
 
 use crate::error::{stage_err, Result};
@@ -13,7 +12,8 @@ use crate::run::Paths;
 /// Every score the ground truth allows, as a JSON object with keys:
 /// `init_median_surface_dist_rel` and `init_surface` (gt/scene.json), `proposals_ari` and
 /// `proposals` (gt/mask_objects.json), `lerf_miou`, `lerf_acc25` and `lerf` (gt/label/),
-/// `scannet_miou19/15/10`, `scannet_macc19/15/10` (gt/mesh.safetensors labels).
+/// `scannet_miou19/15/10`, `scannet_macc19/15/10` (gt/mesh.safetensors labels; each set
+/// from its own `vertex_labels_nyu<set>` file).
 /// Keys whose ground truth or stage output is absent are left out.
 pub fn evaluate(p: &Paths) -> Result<BTreeMap<String, Value>> {
     let mut s = BTreeMap::new();
@@ -58,19 +58,24 @@ pub fn evaluate(p: &Paths) -> Result<BTreeMap<String, Value>> {
                     "per_query": serde_json::to_value(&sc.per_query).unwrap_or(Value::Null) }),
         );
     }
-    if let (Some(mesh), true) = (p.mesh(), p.vertex_labels.is_file()) {
-        let truth =
-            profuse_metrics::scannet::read_ground_truth(&mesh).map_err(stage_err("evaluate"))?;
-        let pred = VertexLabels::read(&p.vertex_labels).map_err(stage_err("evaluate"))?;
-        for (name, set) in [
-            ("19", ClassSet::Nyu19),
-            ("15", ClassSet::Nyu15),
-            ("10", ClassSet::Nyu10),
-        ] {
-            let sc = profuse_metrics::scannet::evaluate(&pred.labels, &truth, set)
+    // Each class set is scored on its own labelling (argmax over that set's prompts only,
+    // OpenGaussian's protocol), not on one labelling over every class.
+    if let Some(mesh) = p.mesh() {
+        let present: Vec<_> = p
+            .vertex_labels
+            .iter()
+            .filter(|(_, f)| f.is_file())
+            .collect();
+        if !present.is_empty() {
+            let truth = profuse_metrics::scannet::read_ground_truth(&mesh)
                 .map_err(stage_err("evaluate"))?;
-            s.insert(format!("scannet_miou{name}"), json!(sc.miou));
-            s.insert(format!("scannet_macc{name}"), json!(sc.macc));
+            for (set, file) in present {
+                let pred = VertexLabels::read(file).map_err(stage_err("evaluate"))?;
+                let sc = profuse_metrics::scannet::evaluate(&pred.labels, &truth, *set)
+                    .map_err(stage_err("evaluate"))?;
+                s.insert(format!("scannet_miou{}", set.name()), json!(sc.miou));
+                s.insert(format!("scannet_macc{}", set.name()), json!(sc.macc));
+            }
         }
     }
     Ok(s)

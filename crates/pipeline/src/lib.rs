@@ -37,4 +37,4 @@ mod run;
 pub mod stage;
 
 pub use error::{PipelineError, Result};
-pub use run::{run, Event, Paths, RunOptions, StageLine, Summary};
+pub use run::{run, Event, Paths, RunOptions, StageLine, Summary, SCANNET_SETS};

@@ -6,12 +6,17 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use profuse_formats::{Cameras, Features, FileKind, Gaussians, Masks, Matches, Proposals};
+use profuse_metrics::scannet::ClassSet;
 use serde::Serialize;
 use serde_json::{json, Value};
 
 use crate::config::Config;
 use crate::error::{io_err, stage_err, PipelineError, Result};
 use crate::stage::{clear_stamp, needs_run, write_stamp, Stamp};
+
+/// The class sets of the ScanNet protocol the pipeline labels the mesh for, one
+/// vertex-labels file each (the paper's 19, 15 and 10 NYU40 classes).
+pub const SCANNET_SETS: [ClassSet; 3] = ClassSet::PAPER;
 
 /// How to run.
 #[derive(Debug, Clone, Default)]
@@ -77,8 +82,9 @@ pub struct Paths {
     pub pq: PathBuf,
     /// `out/query[_baseline]/`.
     pub query: PathBuf,
-    /// `out/vertex_labels[_baseline].safetensors`.
-    pub vertex_labels: PathBuf,
+    /// Per class set of the ScanNet protocol ([`SCANNET_SETS`]), the labelling with that
+    /// set's vocabulary: `out/vertex_labels_nyu<19|15|10>[_baseline].safetensors`.
+    pub vertex_labels: Vec<(ClassSet, PathBuf)>,
     /// `gt/` (synthetic scenes).
     pub gt: PathBuf,
     /// Suffix of the variant's outputs (`_baseline` for `fuse.no_proposals`).
@@ -105,7 +111,13 @@ impl Paths {
             features: out.join(format!("features{suffix}.safetensors")),
             pq: out.join(format!("pq{suffix}.safetensors")),
             query: out.join(format!("query{suffix}")),
-            vertex_labels: out.join(format!("vertex_labels{suffix}.safetensors")),
+            vertex_labels: SCANNET_SETS
+                .iter()
+                .map(|&set| {
+                    let name = format!("vertex_labels_nyu{}{suffix}.safetensors", set.name());
+                    (set, out.join(name))
+                })
+                .collect(),
             gt: scene.join("gt"),
             suffix,
         }
@@ -452,33 +464,45 @@ pub fn run(
         || run_query(config, &p, &prompts, &progress),
     )?);
 
-    // vertex-transfer: when the scene has a labelled mesh (synthetic ground truth).
+    // vertex-transfer: when the scene has a labelled mesh (synthetic ground truth). One
+    // labelling per class set of the ScanNet protocol (OpenGaussian's): the vocabulary is
+    // the set's own class prompts, so each vertex takes the argmax over that set only.
     if let Some(mesh) = p.mesh() {
+        let sets: Vec<&str> = p.vertex_labels.iter().map(|(s, _)| s.name()).collect();
         lines.push(stage(
             &runner,
             &format!("vertex-transfer{}", p.suffix),
-            to_json(&config.vertex_transfer),
+            json!({ "vertex_transfer": to_json(&config.vertex_transfer), "class_sets": sets }),
             vec![
                 p.gaussians.clone(),
                 p.pq.clone(),
                 p.prompts.clone(),
                 mesh.clone(),
             ],
-            vec![p.vertex_labels.clone()],
+            p.vertex_labels.iter().map(|(_, f)| f.clone()).collect(),
             || {
-                let job = vertex_transfer::Job {
-                    gaussians: p.gaussians.clone(),
-                    descriptors: vertex_transfer::DescriptorFile::Pq(p.pq.clone()),
-                    prompts: p.prompts.clone(),
-                    classes: None,
-                    mesh: mesh.clone(),
-                    out: p.vertex_labels.clone(),
-                    // The same stamp as the vertex-transfer tool, so the bytes agree.
-                    generator: Some(format!("vertex-transfer {} run", env!("CARGO_PKG_VERSION"))),
-                };
-                let report = vertex_transfer::run_job(&job, &config.vertex_transfer.params())
-                    .map_err(stage_err("vertex-transfer"))?;
-                Ok(to_json(&report))
+                let mut reports = serde_json::Map::new();
+                for (set, out) in &p.vertex_labels {
+                    let job = vertex_transfer::Job {
+                        gaussians: p.gaussians.clone(),
+                        descriptors: vertex_transfer::DescriptorFile::Pq(p.pq.clone()),
+                        prompts: p.prompts.clone(),
+                        classes: None,
+                        // NYU40 ids are 1..=40: they fit i32.
+                        class_filter: Some(set.ids().iter().map(|&id| id as i32).collect()),
+                        mesh: mesh.clone(),
+                        out: out.clone(),
+                        // The same stamp as the vertex-transfer tool, so the bytes agree.
+                        generator: Some(format!(
+                            "vertex-transfer {} run",
+                            env!("CARGO_PKG_VERSION")
+                        )),
+                    };
+                    let report = vertex_transfer::run_job(&job, &config.vertex_transfer.params())
+                        .map_err(stage_err("vertex-transfer"))?;
+                    reports.insert(format!("nyu{}", set.name()), to_json(&report));
+                }
+                Ok(Value::Object(reports))
             },
         )?);
     }

@@ -4,6 +4,7 @@
 
 use std::path::Path;
 
+use profuse_formats::FileKind;
 use profuse_pipeline::config::Config;
 use profuse_pipeline::evaluate::evaluate;
 use profuse_pipeline::{run, Paths, RunOptions, Summary};
@@ -49,6 +50,50 @@ fn tiny_run_meets_metric_floors() {
     assert!(get("lerf_miou") > 25.0, "{m:?}");
     assert!(get("lerf_acc25") > 40.0, "{m:?}");
     assert!(get("scannet_miou19") > 12.0, "{m:?}");
+    // OpenGaussian's ScanNet protocol: one labelling per class set, with only that set's
+    // ids, and each score recomputed here by brute force from its own file.
+    let paths = Paths::new(dir.path(), &s.out, false);
+    let truth = profuse_formats::Mesh::read(paths.mesh().unwrap())
+        .unwrap()
+        .labels
+        .unwrap()
+        .to_vec();
+    for (set, file) in &paths.vertex_labels {
+        let name = file.file_name().unwrap().to_string_lossy().into_owned();
+        assert_eq!(name, format!("vertex_labels_nyu{}.safetensors", set.name()));
+        let pred = profuse_formats::VertexLabels::read(file)
+            .unwrap()
+            .labels
+            .to_vec();
+        let ids: Vec<i32> = set.ids().iter().map(|&i| i as i32).collect();
+        assert!(pred.iter().all(|l| *l == -1 || ids.contains(l)), "{name}");
+        let mut ious = Vec::new();
+        for &c in &ids {
+            let (mut tp, mut fp, mut fn_) = (0u64, 0u64, 0u64);
+            for (&p, &g) in pred.iter().zip(&truth) {
+                let g = g as i32;
+                if !ids.contains(&g) {
+                    continue; // vertices outside the set are ignored
+                }
+                match (g == c, p == c) {
+                    (true, true) => tp += 1,
+                    (true, false) => fn_ += 1,
+                    (false, true) => fp += 1,
+                    _ => {}
+                }
+            }
+            if tp + fn_ > 0 {
+                ious.push(100.0 * tp as f64 / (tp + fp + fn_) as f64);
+            }
+        }
+        let brute = ious.iter().sum::<f64>() / ious.len() as f64;
+        let key = format!("scannet_miou{}", set.name());
+        assert!(
+            (get(&key) - brute).abs() < 1e-9,
+            "{key}: {} vs {brute}",
+            get(&key)
+        );
+    }
     for k in ["geometry", "semantics", "indexing", "total", "evaluation"] {
         assert!(s.timing_s.contains_key(k), "{k}");
     }

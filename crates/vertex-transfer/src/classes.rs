@@ -93,6 +93,60 @@ impl ClassSet {
         Ok(Self::build(p, file, &rows, space))
     }
 
+    /// The classes whose label is in `labels`, with only their prompts: the vocabulary of a
+    /// class set (OpenGaussian's ScanNet protocol labels every vertex by argmax over the
+    /// evaluated set's prompts only, e.g. the 19 NYU40 ids). The softmax then runs over
+    /// these prompts alone. Errors when no class of `self` has a label in `labels`.
+    pub fn restrict(&self, labels: &[i32]) -> Result<ClassSet> {
+        let keep: Vec<usize> = (0..self.prompts())
+            .filter(|&q| labels.contains(&self.labels[self.prompt_class[q]]))
+            .collect();
+        if keep.is_empty() {
+            return Err(TransferError::NoClassPrompts {
+                file: self.file.clone(),
+                detail: format!(
+                    "none of the labels {labels:?} is a class (the classes are {:?})",
+                    self.labels
+                ),
+            });
+        }
+        let mut kept_labels: Vec<i32> = keep
+            .iter()
+            .map(|&q| self.labels[self.prompt_class[q]])
+            .collect();
+        kept_labels.sort_unstable();
+        kept_labels.dedup();
+        let names = kept_labels
+            .iter()
+            .map(|l| {
+                self.labels
+                    .binary_search(l)
+                    .map_or_else(|_| String::new(), |c| self.names[c].clone())
+            })
+            .collect();
+        let prompt_class = keep
+            .iter()
+            .map(|&q| {
+                kept_labels
+                    .binary_search(&self.labels[self.prompt_class[q]])
+                    .unwrap_or(0)
+            })
+            .collect();
+        let mut embeddings = Vec::with_capacity(keep.len() * self.dim);
+        for &q in &keep {
+            embeddings.extend_from_slice(self.prompt_embedding(q));
+        }
+        Ok(ClassSet {
+            labels: kept_labels,
+            names,
+            prompt_class,
+            embeddings,
+            dim: self.dim,
+            file: self.file.clone(),
+            label_space: self.label_space.clone(),
+        })
+    }
+
     fn build(
         p: &Prompts,
         file: &str,

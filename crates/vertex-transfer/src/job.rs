@@ -38,6 +38,9 @@ pub struct Job {
     pub prompts: PathBuf,
     /// Class prompt names; `None` = every prompt with `class_ids >= 0`.
     pub classes: Option<Vec<String>>,
+    /// Restrict the classes to those whose label is listed ([`ClassSet::restrict`]): the
+    /// vocabulary of one evaluated class set, e.g. the 19 NYU40 ids; `None` = all classes.
+    pub class_filter: Option<Vec<i32>>,
     /// The `mesh` file whose vertices are labelled.
     pub mesh: PathBuf,
     /// The `vertex_labels` file to write.
@@ -123,6 +126,10 @@ pub fn run_job_with_progress(
     let classes = match &job.classes {
         Some(names) => ClassSet::from_names(prompt_source, names)?,
         None => ClassSet::from_prompts(prompt_source)?,
+    };
+    let classes = match &job.class_filter {
+        Some(labels) => classes.restrict(labels)?,
+        None => classes,
     };
     let read_s = t.elapsed().as_secs_f64();
 

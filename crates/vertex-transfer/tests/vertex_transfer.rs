@@ -330,6 +330,82 @@ fn shortlist_equals_brute_force_and_the_f64_reference_when_k_covers_every_gated_
     assert!(compared > s.vertices.len() * 99 / 100, "{compared}");
 }
 
+/// OpenGaussian's ScanNet protocol: a class set's labelling uses that set's prompts only.
+/// `ClassSet::restrict` writes only labels of the set (or −1), equals the same vocabulary
+/// built by name, equals the brute force, and equals the independent f64 reference run on
+/// prompts whose other class ids are −1 (softmax over the set's prompts only).
+#[test]
+fn a_restricted_class_set_labels_by_argmax_over_its_own_prompts() {
+    let s = random_scene(600, 6.0, 11);
+    let params = Params::default();
+    let all = ClassSet::from_prompts(Source::new("prompts", &s.p)).unwrap();
+    let set = [1, 3, 6, 40]; // wall, cabinet, sofa (+ an id no prompt has)
+    let restricted = all.restrict(&set).unwrap();
+    assert_eq!(restricted.labels(), &[1, 3, 6]);
+    assert_eq!(restricted.names(), &["wall", "cabinet", "sofa"]);
+    assert_eq!(restricted.prompts(), 3);
+    let by_name = ClassSet::from_names(
+        Source::new("prompts", &s.p),
+        &["cabinet".into(), "wall".into(), "sofa".into()],
+    )
+    .unwrap();
+    let make = |c: &ClassSet| {
+        GaussianField::new(
+            Source::new("gaussians", &s.g),
+            Descriptors::Features(Source::new("features", &s.f)),
+            c,
+            &params,
+        )
+        .unwrap()
+    };
+    let field = make(&restricted);
+    let out = field.label_vertices(&s.vertices);
+    assert!(out.labels.iter().all(|l| [-1, 1, 3, 6].contains(l)));
+    assert_eq!(out, make(&by_name).label_vertices(&s.vertices));
+    assert_eq!(out, field.label_vertices_brute_force(&s.vertices));
+    // Not the full-vocabulary labelling with other classes mapped away: vertices whose
+    // full argmax is floor or chair still get a class of the set.
+    let full = make(&all).label_vertices(&s.vertices);
+    let moved = full
+        .labels
+        .iter()
+        .zip(&out.labels)
+        .filter(|(f, r)| [2, 5].contains(*f) && [1, 3, 6].contains(*r))
+        .count();
+    assert!(moved > 100, "{moved}");
+
+    let mut only = s.p.clone();
+    let ids: Vec<i32> = only
+        .class_ids
+        .as_ref()
+        .unwrap()
+        .iter()
+        .map(|c| if set.contains(c) { *c } else { -1 })
+        .collect();
+    only.class_ids = Some(ids.into());
+    let mut compared = 0;
+    for (v, x) in s.vertices.iter().enumerate() {
+        let (label, conf, ds, scores) = reference_vertex(*x, &s.g, &s.f, &only, &params);
+        let near_gate = ds.iter().any(|d| (d - 3.0).abs() < 1e-4);
+        let near_tie = scores.len() > 1 && scores[0] - scores[1] < 1e-9 * scores[0];
+        if near_gate || near_tie {
+            continue;
+        }
+        compared += 1;
+        assert_eq!(out.labels[v], label, "vertex {v}");
+        assert!(
+            (f64::from(out.confidence[v]) - conf).abs() < 1e-5,
+            "vertex {v}"
+        );
+    }
+    assert!(compared > s.vertices.len() * 99 / 100, "{compared}");
+
+    // A set with no class of the prompts is a typed error naming the file.
+    let e = all.restrict(&[39, 40]).unwrap_err();
+    assert!(matches!(e, TransferError::NoClassPrompts { .. }), "{e}");
+    assert!(e.to_string().contains("prompts"), "{e}");
+}
+
 /// A Gaussian with an enormous scale passes the gate everywhere and makes the search
 /// radius bound infinite (the plain K-nearest search runs): still equal to brute force.
 #[test]
@@ -951,6 +1027,7 @@ fn write_small_scene(dir: &Path) -> (Job, Vec<i32>) {
         descriptors: DescriptorFile::Features(fp),
         prompts: pp,
         classes: None,
+        class_filter: None,
         mesh: mp,
         out: dir.join("out").join("labels.safetensors"),
         generator: Some("test".to_string()),
@@ -986,6 +1063,24 @@ fn a_job_reads_transfers_and_writes_a_valid_vertex_labels_file() {
         VertexLabels::read(&job.out).unwrap().labels.to_vec(),
         vec![7, 7, 7, -1]
     );
+    // Restricting to the label set {7, 40} is the same vocabulary.
+    let filtered = Job {
+        class_filter: Some(vec![7, 40]),
+        ..job.clone()
+    };
+    let report = run_job(&filtered, &Params::default()).unwrap();
+    assert_eq!(report.class_labels, vec![7]);
+    let out = VertexLabels::read(&job.out).unwrap();
+    assert_eq!(out.labels.to_vec(), vec![7, 7, 7, -1]);
+    assert_eq!(out.extra["class_labels"], "[7]");
+    let none = Job {
+        class_filter: Some(vec![1, 2]),
+        ..job.clone()
+    };
+    assert!(matches!(
+        run_job(&none, &Params::default()),
+        Err(TransferError::NoClassPrompts { .. })
+    ));
 }
 
 #[test]

@@ -14,7 +14,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use profuse_formats::{FileKind, Gaussians, Proposals, VertexLabels};
 use profuse_metrics::cluster::{adjusted_rand_index, proposal_scores, read_mask_objects};
 use profuse_metrics::lerf::{evaluate_scene, mean_over_scenes, read_label_dir, PredDir};
-use profuse_metrics::mask::rasterize_polygon;
+use profuse_metrics::mask::{
+    fill_poly_as, fits_int32, rasterize_polygon, reference_vertices, OpenCvFill,
+};
 use profuse_metrics::scannet::{evaluate, read_ground_truth, ClassSet};
 use profuse_metrics::surface::{scene_extent, summarize, surface_distances_with_progress};
 use profuse_tools::{chatty, peak_rss_mb, run, warn, BoxError};
@@ -73,6 +75,14 @@ impl SetArg {
     }
 }
 
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum OpenCvArg {
+    /// OpenCV >= 4.11 (the default rule of `metrics lerf`).
+    Current,
+    /// OpenCV <= 4.7.
+    Legacy,
+}
+
 #[derive(Debug, Subcommand)]
 enum Command {
     /// ScanNet point-cloud understanding: mIoU and mAcc (per-class recall) in percent,
@@ -94,7 +104,9 @@ enum Command {
     },
     /// LERF-OVS 3D object selection: IoU per (frame, query) of predicted PNG masks
     /// (PRED/<frame_stem>/<query>.png, non-zero = selected; '/' and '\' in a query become
-    /// '_') against the label polygons (pixel-centre rule, same-category objects unioned).
+    /// '_') against the label polygons (rasterised as the reference evaluation does:
+    /// int32 truncation, then cv2.fillPoly with the outline included; same-category objects
+    /// unioned).
     /// mIoU and Acc@0.25 (IoU > 0.25, strict) in percent per scene and averaged over
     /// scenes; a missing PNG scores IoU 0. Give --labels and --pred once per scene, in the
     /// same order.
@@ -123,6 +135,20 @@ enum Command {
         /// synth's `gt/mask_objects.json`: `masks[i].object` is the truth of global mask i.
         #[arg(long)]
         truth: PathBuf,
+    },
+    /// Rasterises polygons with the LERF-OVS ground-truth rule (int32 truncation of every
+    /// coordinate, then cv2.fillPoly semantics: outline included) and prints each mask as
+    /// row runs. Input: JSON `{"cases": [{"width": W, "height": H, "polygon": [[x, y],
+    /// ...]}, ...]}`. Output: `{"cases": N, "masks": [{"pixels": n, "runs": [[y, x_begin,
+    /// x_end), ...]}, ...]}` (x_end exclusive). Used to check the rasteriser against OpenCV.
+    Rasterize {
+        /// The JSON file of polygons.
+        #[arg(long)]
+        polygons: PathBuf,
+        /// Which OpenCV's fillPoly to reproduce: `current` (>= 4.11) or `legacy` (<= 4.7);
+        /// they differ only for polygons with vertices outside the image.
+        #[arg(long, value_enum, default_value = "current")]
+        opencv: OpenCvArg,
     },
     /// Distance of Gaussian centres to the exact surface of a synth scene: count, median,
     /// mean, 90th percentile (metres), and the median relative to the room's diagonal.
@@ -175,6 +201,13 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             no_rows,
         } => lerf(&labels, &pred, queries.as_deref(), !no_rows, quiet),
         Command::Proposals { proposals, truth } => proposals_cmd(&proposals, &truth),
+        Command::Rasterize { polygons, opencv } => rasterize(
+            &polygons,
+            match opencv {
+                OpenCvArg::Current => OpenCvFill::Current,
+                OpenCvArg::Legacy => OpenCvFill::Legacy,
+            },
+        ),
         Command::Surface { gaussians, scene } => surface(&gaussians, &scene, quiet),
         Command::Bench {
             vertices,
@@ -264,6 +297,82 @@ fn lerf(
         "queries": queries,
         "scenes": scene_values,
     }))
+}
+
+#[derive(serde::Deserialize)]
+struct RasterCases {
+    cases: Vec<RasterCase>,
+}
+
+#[derive(serde::Deserialize)]
+struct RasterCase {
+    width: u32,
+    height: u32,
+    polygon: Vec<[f64; 2]>,
+}
+
+/// Largest mask side `rasterize` accepts (the label files' limit).
+const MAX_RASTER_SIDE: u32 = profuse_metrics::lerf::MAX_SIDE;
+
+fn rasterize(path: &Path, variant: OpenCvFill) -> Result<Value, BoxError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("{}: cannot read polygons: {e}", path.display()))?;
+    let input: RasterCases = serde_json::from_str(&text).map_err(|e| {
+        format!(
+            "{}: expected {{\"cases\": [{{\"width\", \"height\", \"polygon\": [[x, y], ...]}}]}}: {e}",
+            path.display()
+        )
+    })?;
+    let mut masks = Vec::with_capacity(input.cases.len());
+    for (i, case) in input.cases.iter().enumerate() {
+        if !(1..=MAX_RASTER_SIDE).contains(&case.width)
+            || !(1..=MAX_RASTER_SIDE).contains(&case.height)
+        {
+            return Err(format!(
+                "{}: cases[{i}]: {}x{}, expected each side in 1..={MAX_RASTER_SIDE}",
+                path.display(),
+                case.width,
+                case.height
+            )
+            .into());
+        }
+        if let Some(k) = case
+            .polygon
+            .iter()
+            .position(|p| !p.iter().all(|&v| fits_int32(v)))
+        {
+            return Err(format!(
+                "{}: cases[{i}].polygon[{k}]: {:?} does not fit int32 after truncation",
+                path.display(),
+                case.polygon[k]
+            )
+            .into());
+        }
+        let m = fill_poly_as(
+            &reference_vertices(&case.polygon),
+            case.width,
+            case.height,
+            variant,
+        );
+        let w = m.width as usize;
+        let mut runs = Vec::new();
+        for (y, row) in m.pixels.chunks(w.max(1)).enumerate() {
+            let mut x = 0;
+            while x < row.len() {
+                if row[x] {
+                    let begin = x;
+                    while x < row.len() && row[x] {
+                        x += 1;
+                    }
+                    runs.push(json!([y, begin, x]));
+                } else {
+                    x += 1;
+                }
+            }
+        }
+        masks.push(json!({"pixels": m.count(), "runs": runs}));
+    }
+    Ok(json!({"cases": masks.len(), "masks": masks}))
 }
 
 fn proposals_cmd(proposals: &Path, truth: &Path) -> Result<Value, BoxError> {

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use profuse_formats::Mesh;
 use profuse_metrics::scannet::{evaluate, ClassSet as ScannetSet};
@@ -60,6 +60,11 @@ enum Command {
         /// Class prompt names (comma-separated or repeated) instead of the class_ids rows.
         #[arg(long, value_delimiter = ',', num_args = 1..)]
         classes: Option<Vec<String>>,
+        /// Restrict the vocabulary to one NYU40 class set of the ScanNet protocol
+        /// (OpenGaussian's): only the prompts of classes in the set compete, each vertex
+        /// takes the argmax over them. `all` keeps every class.
+        #[arg(long, value_enum, default_value = "all")]
+        class_set: ClassSetArg,
         /// Mesh file (profuse.mesh) whose vertices are labelled.
         #[arg(long)]
         mesh: PathBuf,
@@ -97,6 +102,33 @@ enum Command {
         #[command(flatten)]
         params: ParamArgs,
     },
+}
+
+/// `--class-set`: a class set of the ScanNet protocol, or every class.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum ClassSetArg {
+    /// The 19 NYU40 classes of OpenGaussian's protocol.
+    Nyu19,
+    /// The 15-class subset.
+    Nyu15,
+    /// The 10-class subset.
+    Nyu10,
+    /// Every class of the prompts (no restriction).
+    All,
+}
+
+impl ClassSetArg {
+    /// The NYU40 ids to restrict to; `None` for `all`.
+    fn filter(self) -> Option<Vec<i32>> {
+        let set = match self {
+            ClassSetArg::Nyu19 => ScannetSet::Nyu19,
+            ClassSetArg::Nyu15 => ScannetSet::Nyu15,
+            ClassSetArg::Nyu10 => ScannetSet::Nyu10,
+            ClassSetArg::All => return None,
+        };
+        // NYU40 ids are 1..=40: they fit i32.
+        Some(set.ids().iter().map(|&id| id as i32).collect())
+    }
 }
 
 #[derive(Debug, Args)]
@@ -151,6 +183,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             descriptors,
             prompts,
             classes,
+            class_set,
             mesh,
             out,
             params,
@@ -165,6 +198,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
                 descriptors,
                 prompts,
                 classes,
+                class_filter: class_set.filter(),
                 mesh,
                 out,
                 generator: Some(format!("vertex-transfer {} run", env!("CARGO_PKG_VERSION"))),
