@@ -58,10 +58,12 @@ enum Command {
         #[command(flatten)]
         common: Common,
     },
-    /// Generate the synthetic demo scene (24 views, 320x240, a furnished room), run the
-    /// pipeline and the --no-proposals baseline, and print LERF-style selection mIoU /
-    /// Acc@0.25, ScanNet-style mIoU, proposal ARI and timings. Overlays of the selections on
-    /// the rendered views are written under OUT/out/query/overlay/.
+    /// Generate the synthetic demo scene (24 views, 320x240, a furnished room; --preset and
+    /// --faults pick another synth scene), run the pipeline and the --no-proposals
+    /// baseline, and print LERF-style selection mIoU / Acc@0.25, ScanNet-style mIoU,
+    /// proposal ARI / purity / completeness, the wrong-class pixel share of both methods
+    /// and timings. Overlays of the selections on the rendered views are written under
+    /// OUT/out/query/overlay/.
     Demo {
         /// Scene directory to generate into (default: <temp dir>/profuse-demo).
         #[arg(long)]
@@ -151,7 +153,9 @@ struct SceneArgs {
 #[derive(Args, Debug)]
 struct Common {
     /// TOML configuration (sections gs_init, warp_graph, fuse, pq, query, vertex_transfer;
-    /// missing keys take the paper's defaults; `out/config.toml` of a run is a complete one).
+    /// `out/config.toml` of a run is a complete one). For `run` missing keys take the
+    /// paper's defaults; for `demo` they keep the demo's settings (gs_init.budget=3000,
+    /// pq.sample=16384, pq.iters=10) and the file's keys apply on top.
     #[arg(long, value_name = "TOML")]
     config: Option<PathBuf>,
     /// Override one parameter, e.g. `--set fuse.k=40 --set query.threshold=0.6` (TOML
