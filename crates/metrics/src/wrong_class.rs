@@ -166,6 +166,19 @@ pub fn wrong_class_pixel_share(
             ),
         ));
     }
+    if ids.len() != objects.view_names.len() * objects.width * objects.height {
+        return Err(invalid(
+            views_label,
+            "object_ids",
+            format!(
+                "{} values, expected {} views x {}x{}",
+                ids.len(),
+                objects.view_names.len(),
+                objects.width,
+                objects.height
+            ),
+        ));
+    }
     if mask_class.len() != masks.num_masks() {
         return Err(MetricsError::LengthMismatch {
             what: "wrong-class share",
@@ -182,7 +195,9 @@ pub fn wrong_class_pixel_share(
             let Some(local) = masks.labels.get(i) else {
                 continue;
             };
-            let object = ids[i];
+            let Some(&object) = ids.get(i) else {
+                continue;
+            };
             if object == u32::MAX {
                 continue;
             }

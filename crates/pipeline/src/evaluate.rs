@@ -105,7 +105,7 @@ pub fn evaluate_run(
 /// orphans) count as wrong. `registered` is the run's in-memory registration; when `None`
 /// the fuse accumulation is redone in memory from the run's files (about a second on the
 /// demo scene; nothing is written). `None` when the ground truth or class prompts are
-/// absent.
+/// absent, or when `gt/views.safetensors` is not on the masks' grid and views.
 pub fn wrong_class(
     p: &Paths,
     config: &Config,
@@ -121,7 +121,12 @@ pub fn wrong_class(
         return Ok(None);
     }
     let views = ViewMaps::read(&views_path).map_err(stage_err("evaluate"))?;
-    if views.object_ids.is_none() {
+    let masks = Masks::read(&p.masks).map_err(stage_err("evaluate"))?;
+    // Synth writes both on the image grid; other scenes may not match pixel for pixel.
+    if views.object_ids.is_none()
+        || (views.width, views.height) != (masks.width, masks.height)
+        || views.view_names != masks.view_names
+    {
         return Ok(None);
     }
     let recomputed;
@@ -137,7 +142,6 @@ pub fn wrong_class(
             &recomputed
         }
     };
-    let masks = Masks::read(&p.masks).map_err(stage_err("evaluate"))?;
     let classes = profuse_metrics::wrong_class::mask_classes(
         &registered.0,
         &prompts,
