@@ -18,6 +18,8 @@ mod pipeline;
 mod pq;
 #[path = "e2e/query.rs"]
 mod query;
+#[path = "e2e/sweep.rs"]
+mod sweep;
 #[path = "e2e/vertex_transfer.rs"]
 mod vertex_transfer;
 #[path = "e2e/warp_graph.rs"]

@@ -270,6 +270,30 @@ pub fn group_descriptors(p: &PartialSums) -> Vec<f64> {
     desc
 }
 
+/// The descriptor each global mask's pixels register (eq. accumulate adds ω f̄_{L(p)} for
+/// every pixel p of the mask): `desc[group(m)]` of [`group_descriptors`], as f32. With
+/// proposals that is the mask's proposal's mass-weighted pool, with [`Grouping::Masks`]
+/// (the `--no-proposals` baseline) the mask's own normalised feature. `None` for a mask
+/// that registers nothing: no group ([`NO_GROUP`], an ignored orphan), or a group whose
+/// descriptor is zero (no member with mass).
+pub fn registered_mask_descriptors(p: &PartialSums) -> Vec<Option<Vec<f32>>> {
+    let d = p.dim;
+    let desc = group_descriptors(p);
+    p.groups
+        .mask_group
+        .iter()
+        .map(|group| {
+            if *group == NO_GROUP {
+                return None;
+            }
+            let row = desc.get(*group as usize * d..(*group as usize + 1) * d)?;
+            row.iter()
+                .any(|x| *x != 0.0)
+                .then(|| row.iter().map(|x| *x as f32).collect())
+        })
+        .collect()
+}
+
 fn summarise(p: &PartialSums, desc: &[f64], valid: &[u8], t0: Instant) -> Summary {
     let mut masses: Vec<f64> = p
         .mask_mass

@@ -102,7 +102,9 @@ use splat_raster::{ListScratch, Rasterizer, RenderOptions, RenderStats, ViewCame
 
 pub use accumulate::{dequantise, quantise, HitCounts, WeightMatrix, WEIGHT_SCALE};
 pub use error::{FuseError, Result};
-pub use finish::{finish, group_descriptors, Precision, Registration, Summary, EPS};
+pub use finish::{
+    finish, group_descriptors, registered_mask_descriptors, Precision, Registration, Summary, EPS,
+};
 pub use groups::{Grouping, Groups, Orphans, NO_GROUP};
 pub use partial::{merge, PartialSums, Timings, PARTIAL_FORMAT, PARTIAL_VERSION};
 

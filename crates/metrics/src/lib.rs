@@ -9,6 +9,8 @@
 //! * [`cluster`]: adjusted Rand index, purity and completeness of a clustering (3D
 //!   Context Proposals against synth's per-mask ground-truth objects).
 //! * [`surface`]: distances of reconstructed points to the exact surface of a synth scene.
+//! * [`wrong_class`]: the share of mask pixels whose registered descriptor's best class
+//!   prompt is not their ground-truth object's class (proposals against the baseline).
 //!
 //! # Design
 //!
@@ -56,6 +58,7 @@ pub mod lerf;
 pub mod mask;
 pub mod scannet;
 pub mod surface;
+pub mod wrong_class;
 
 pub(crate) use error::invalid;
 pub use error::{MetricsError, Result};

@@ -414,6 +414,32 @@ impl Config {
         })
     }
 
+    /// Applies the keys of a TOML configuration on top of this one: a key the text sets
+    /// wins, every other key keeps its value here (unlike [`Config::from_toml`], whose
+    /// missing keys take the paper's defaults). Unknown sections or keys are errors;
+    /// `label` names the file in errors.
+    pub fn with_toml(&self, text: &str, label: &str) -> Result<Config> {
+        let err = |detail: String| PipelineError::Config {
+            key: label.into(),
+            detail,
+        };
+        let overlay: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        // Checks the sections and keys (and their types) first.
+        Config::from_toml(text, label)?;
+        let mut table = toml::Table::try_from(self).map_err(|e| err(e.to_string()))?;
+        for (section, value) in overlay {
+            let (Some(toml::Value::Table(base)), toml::Value::Table(keys)) =
+                (table.get_mut(&section), value)
+            else {
+                return Err(err(format!("[{section}] is not a section")));
+            };
+            base.extend(keys);
+        }
+        toml::Value::Table(table)
+            .try_into()
+            .map_err(|e: toml::de::Error| err(e.to_string()))
+    }
+
     /// Applies `section.key=value` assignments (values in TOML syntax; a bare word is taken
     /// as a string), in order.
     pub fn with_overrides(&self, assignments: &[String]) -> Result<Config> {
@@ -579,5 +605,23 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("gs_init.scale"));
+    }
+
+    #[test]
+    fn with_toml_keeps_the_keys_the_text_does_not_set() {
+        let base = Config::default()
+            .with_overrides(&["pq.iters=10".into(), "fuse.k=12".into()])
+            .unwrap();
+        let c = base.with_toml("[fuse]\nk = 40\n", "c.toml").unwrap();
+        assert_eq!((c.fuse.k, c.pq.iters), (40, 10));
+        // A complete configuration replaces everything.
+        let full = Config::default();
+        assert_eq!(base.with_toml(&full.to_toml(), "c.toml").unwrap(), full);
+        let e = base.with_toml("[fuse]\nkay = 3\n", "c.toml").unwrap_err();
+        assert!(
+            e.to_string().contains("c.toml") && e.to_string().contains("kay"),
+            "{e}"
+        );
+        assert!(base.with_toml("k = 3\n", "c.toml").is_err());
     }
 }

@@ -3,11 +3,12 @@
 
 use std::collections::BTreeMap;
 
-use profuse_formats::{FileKind, Gaussians, Proposals, VertexLabels};
+use profuse_formats::{FileKind, Gaussians, Masks, Prompts, Proposals, VertexLabels, ViewMaps};
 use serde_json::{json, Value};
 
+use crate::config::Config;
 use crate::error::{stage_err, Result};
-use crate::run::Paths;
+use crate::run::{fuse_partial, Paths, RegisteredMasks, Summary};
 
 /// Every score the ground truth allows, as a JSON object with keys:
 /// `init_median_surface_dist_rel` and `init_surface` (gt/scene.json), `proposals_ari` and
@@ -79,4 +80,88 @@ pub fn evaluate(p: &Paths) -> Result<BTreeMap<String, Value>> {
         }
     }
     Ok(s)
+}
+
+/// [`evaluate`] plus the wrong-class pixel share of the run's registration
+/// ([`wrong_class`]): keys `wrong_class_pixel_share` and `wrong_class` (its counts) when
+/// the scene has `gt/views.safetensors` with object ids, `gt/scene.json` and prompts with
+/// class ids. `summary` is what [`crate::run`] returned for this variant (its in-memory
+/// registration is used when the fuse stage ran; otherwise it is recomputed).
+pub fn evaluate_run(
+    p: &Paths,
+    config: &Config,
+    summary: &Summary,
+) -> Result<BTreeMap<String, Value>> {
+    let mut s = evaluate(p)?;
+    if let Some(w) = wrong_class(p, config, summary.registered.as_ref())? {
+        s.insert("wrong_class_pixel_share".into(), json!(w.share));
+        s.insert(
+            "wrong_class".into(),
+            serde_json::to_value(&w).unwrap_or(Value::Null),
+        );
+    }
+    Ok(s)
+}
+
+/// The wrong-class pixel share ([`profuse_metrics::wrong_class`]) of the registration of
+/// the variant `p` names (`p.suffix`: proposals, or the `_baseline` of
+/// `fuse.no_proposals`): every mask pixel with a ground-truth object is scored by the best
+/// class prompt of the descriptor its mask registers; masks that register nothing (ignored
+/// orphans) count as wrong. `registered` is the run's in-memory registration; when `None`
+/// the fuse accumulation is redone in memory from the run's files (about a second on the
+/// demo scene; nothing is written). `None` when the ground truth or class prompts are
+/// absent, or when `gt/views.safetensors` is not on the masks' grid and views.
+pub fn wrong_class(
+    p: &Paths,
+    config: &Config,
+    registered: Option<&RegisteredMasks>,
+) -> Result<Option<profuse_metrics::wrong_class::WrongClassShare>> {
+    let views_path = p.gt.join("views.safetensors");
+    let scene_json = p.gt.join("scene.json");
+    if !views_path.is_file() || !scene_json.is_file() || !p.masks.is_file() {
+        return Ok(None);
+    }
+    let prompts = Prompts::read(&p.prompts).map_err(stage_err("evaluate"))?;
+    if prompts.class_ids.is_none() {
+        return Ok(None);
+    }
+    let views = ViewMaps::read(&views_path).map_err(stage_err("evaluate"))?;
+    let masks = Masks::read(&p.masks).map_err(stage_err("evaluate"))?;
+    // Synth writes both on the image grid; other scenes may not match pixel for pixel.
+    if views.object_ids.is_none()
+        || (views.width, views.height) != (masks.width, masks.height)
+        || views.view_names != masks.view_names
+    {
+        return Ok(None);
+    }
+    let recomputed;
+    let registered = match registered {
+        Some(r) => r,
+        None => {
+            let mut config = config.clone();
+            config.fuse.no_proposals = !p.suffix.is_empty();
+            let (partial, _) = fuse_partial(&config, p, &|_, _| {})?;
+            recomputed = RegisteredMasks(std::sync::Arc::new(
+                profuse_fuse::registered_mask_descriptors(&partial),
+            ));
+            &recomputed
+        }
+    };
+    let classes = profuse_metrics::wrong_class::mask_classes(
+        &registered.0,
+        &prompts,
+        &p.prompts.display().to_string(),
+    )
+    .map_err(stage_err("evaluate"))?;
+    let object_class = profuse_metrics::wrong_class::read_object_classes(&scene_json)
+        .map_err(stage_err("evaluate"))?;
+    let share = profuse_metrics::wrong_class::wrong_class_pixel_share(
+        &masks,
+        &views,
+        &views_path.display().to_string(),
+        &object_class,
+        &classes,
+    )
+    .map_err(stage_err("evaluate"))?;
+    Ok(Some(share))
 }

@@ -1,4 +1,8 @@
-//! The ProFuse pipeline as one library call, behind `profuse run` and `profuse demo`.
+//! The ProFuse pipeline as one library call, behind `profuse run`, `profuse demo` and
+//! `profuse sweep`: [`run`] runs the stages, [`evaluate`] scores a run against a synthetic
+//! scene's ground truth, [`demo`] is the paper's central experiment (ProFuse against the
+//! `--no-proposals` baseline on a synth scene) and [`sweep`] repeats it over seeds and
+//! fault sets (the accuracy harness).
 //!
 //! # Design
 //!
@@ -17,7 +21,14 @@
 //!   effective configuration is written as `out/config.toml`.
 //! * **Ground truth when present** ([`evaluate`]): synthetic scenes carry `gt/`, from which
 //!   the run is scored (surface distance of the initial Gaussians, proposal ARI, LERF mIoU
-//!   and Acc@0.25, ScanNet-style mIoU).
+//!   and Acc@0.25, ScanNet-style mIoU) and, with [`evaluate::evaluate_run`], the share of
+//!   mask pixels whose registered descriptor names the wrong class, from the registration
+//!   the fuse stage keeps in memory ([`Summary::registered`]) or recomputes; nothing extra
+//!   is written to the output directory.
+//! * **Experiments are library calls too** ([`demo::run_experiment`], [`sweep::sweep`]):
+//!   the tools only parse arguments and display progress. Sweep rows run one after the
+//!   other (each run is parallel inside) in the fixed order fault set, then seed, and each
+//!   equals the `profuse demo` of the same seed, fault set and options.
 //!
 //! # Example
 //!
@@ -31,10 +42,14 @@
 //! ```
 
 pub mod config;
+pub mod demo;
 mod error;
 pub mod evaluate;
 mod run;
 pub mod stage;
+pub mod sweep;
 
 pub use error::{PipelineError, Result};
-pub use run::{run, Event, Paths, RunOptions, StageLine, Summary, SCANNET_SETS};
+pub use run::{
+    run, Event, Paths, RegisteredMasks, RunOptions, StageLine, Summary, SCANNET_SETS,
+};

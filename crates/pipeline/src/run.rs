@@ -164,6 +164,27 @@ pub struct Summary {
     /// indexing (pq), total (the three), plus evaluation (query, vertex-transfer) and the
     /// per-stage seconds.
     pub timing_s: BTreeMap<String, f64>,
+    /// What every mask registered in this invocation's fuse stage
+    /// ([`profuse_fuse::registered_mask_descriptors`]), for the wrong-class share of
+    /// [`crate::evaluate::evaluate_run`]; `None` when the fuse stage was up to date (then
+    /// it is recomputed from the files). Not serialised.
+    #[serde(skip)]
+    pub registered: Option<RegisteredMasks>,
+}
+
+/// The descriptor each global mask's pixels register (`None`: nothing), shared cheaply.
+#[derive(Clone)]
+pub struct RegisteredMasks(pub std::sync::Arc<Vec<Option<Vec<f32>>>>);
+
+impl std::fmt::Debug for RegisteredMasks {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let some = self.0.iter().filter(|m| m.is_some()).count();
+        write!(
+            f,
+            "RegisteredMasks({} masks, {some} registered)",
+            self.0.len()
+        )
+    }
 }
 
 fn check_input(stage: &'static str, path: &Path, expected: &'static str) -> Result<()> {
@@ -368,6 +389,7 @@ pub fn run(
     } else {
         "fuse"
     };
+    let mut registered = None;
     let mut fuse_inputs = vec![p.gaussians.clone(), p.cameras.clone(), p.masks.clone()];
     if !config.fuse.no_proposals {
         fuse_inputs.push(p.proposals.clone());
@@ -379,37 +401,10 @@ pub fn run(
         fuse_inputs,
         vec![p.features.clone()],
         || {
-            let err = |e: profuse_formats::FormatError| stage_err("fuse")(e);
-            let gaussians = Gaussians::read(&p.gaussians).map_err(err)?;
-            let cameras = Cameras::read(&p.cameras).map_err(err)?;
-            let masks = Masks::read(&p.masks).map_err(err)?;
-            let groups = if config.fuse.no_proposals {
-                profuse_fuse::Groups::per_mask(&masks)
-            } else {
-                let proposals = Proposals::read(&p.proposals).map_err(err)?;
-                let orphans = profuse_fuse::Orphans::parse(&config.fuse.orphans)
-                    .unwrap_or(profuse_fuse::Orphans::Ignore);
-                profuse_fuse::Groups::from_proposals(
-                    &masks,
-                    &proposals,
-                    orphans,
-                    &p.proposals.display().to_string(),
-                )
-                .map_err(stage_err("fuse"))?
-            };
-            let names = profuse_fuse::Names {
-                gaussians: p.gaussians.display().to_string(),
-                cameras: p.cameras.display().to_string(),
-                masks: p.masks.display().to_string(),
-            };
-            let scene = profuse_fuse::Scene::new(&gaussians, &cameras, &masks).named(names);
-            let views = cameras.len();
-            let partial =
-                profuse_fuse::accumulate(&scene, &groups, config.fuse.k, 0..views, &mut |r| {
-                    progress(r.view + 1, views)
-                })
-                .map_err(stage_err("fuse"))?;
-            let precision = profuse_fuse::Precision::of(&masks.features);
+            let (partial, precision) = fuse_partial(config, &p, &progress)?;
+            registered = Some(RegisteredMasks(std::sync::Arc::new(
+                profuse_fuse::registered_mask_descriptors(&partial),
+            )));
             let reg = profuse_fuse::finish(&partial, precision);
             reg.features.write(&p.features).map_err(stage_err("fuse"))?;
             let s = &reg.summary;
@@ -513,7 +508,48 @@ pub fn run(
         out,
         stages: lines,
         timing_s,
+        registered,
     })
+}
+
+/// The fuse stage's accumulation over every view: the groups (proposals with the
+/// configured orphan policy, or one per mask for `fuse.no_proposals`) and the exact partial
+/// sums, plus the masks' feature precision. `progress` gets (views done, views).
+pub(crate) fn fuse_partial(
+    config: &Config,
+    p: &Paths,
+    progress: &dyn Fn(usize, usize),
+) -> Result<(profuse_fuse::PartialSums, profuse_fuse::Precision)> {
+    let err = |e: profuse_formats::FormatError| stage_err("fuse")(e);
+    let gaussians = Gaussians::read(&p.gaussians).map_err(err)?;
+    let cameras = Cameras::read(&p.cameras).map_err(err)?;
+    let masks = Masks::read(&p.masks).map_err(err)?;
+    let groups = if config.fuse.no_proposals {
+        profuse_fuse::Groups::per_mask(&masks)
+    } else {
+        let proposals = Proposals::read(&p.proposals).map_err(err)?;
+        let orphans = profuse_fuse::Orphans::parse(&config.fuse.orphans)
+            .unwrap_or(profuse_fuse::Orphans::Ignore);
+        profuse_fuse::Groups::from_proposals(
+            &masks,
+            &proposals,
+            orphans,
+            &p.proposals.display().to_string(),
+        )
+        .map_err(stage_err("fuse"))?
+    };
+    let names = profuse_fuse::Names {
+        gaussians: p.gaussians.display().to_string(),
+        cameras: p.cameras.display().to_string(),
+        masks: p.masks.display().to_string(),
+    };
+    let scene = profuse_fuse::Scene::new(&gaussians, &cameras, &masks).named(names);
+    let views = cameras.len();
+    let partial = profuse_fuse::accumulate(&scene, &groups, config.fuse.k, 0..views, &mut |r| {
+        progress(r.view + 1, views)
+    })
+    .map_err(stage_err("fuse"))?;
+    Ok((partial, profuse_fuse::Precision::of(&masks.features)))
 }
 
 /// The paper's Table 4 grouping of stage seconds.

@@ -21,6 +21,9 @@ pub enum SynthError {
     /// An unknown preset name.
     #[error("unknown preset {0:?}, expected one of: tiny, demo, scale")]
     Preset(String),
+    /// An unknown fault-set name.
+    #[error("unknown fault set {0:?}, expected one of: default, noisy-features, harsh-segmentation, sparse-views")]
+    FaultSet(String),
     /// A file or directory could not be created, written, renamed or read.
     #[error("{path}: {action}: {source}")]
     Io {

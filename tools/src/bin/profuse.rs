@@ -7,6 +7,11 @@
 //!   shape on stderr and a JSON summary on stdout.
 //! * `profuse demo` generates the synthetic demo scene, runs the pipeline and its
 //!   `--no-proposals` baseline, and prints the selection and ScanNet-style scores.
+//! * `profuse sweep` repeats the demo's experiment over seeds and synth fault sets and
+//!   prints one row per (fault set, seed) and the means.
+//!
+//! The experiments live in `profuse_pipeline::{demo, sweep}`; this tool parses arguments
+//! and displays progress.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -16,11 +21,11 @@ use std::sync::Mutex;
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use profuse_pipeline::config::Config;
-use profuse_pipeline::{
-    evaluate::evaluate, run as run_pipeline, Event, Paths, RunOptions, Summary,
-};
+use profuse_pipeline::demo::{self, DemoOptions};
+use profuse_pipeline::sweep::{self, SweepEvent, SweepOptions};
+use profuse_pipeline::{evaluate::evaluate_run, run as run_pipeline, Event, Paths, RunOptions};
 use profuse_tools::{chatty, run, BoxError};
-use serde_json::{json, Map, Value};
+use serde_json::{json, Value};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -53,10 +58,12 @@ enum Command {
         #[command(flatten)]
         common: Common,
     },
-    /// Generate the synthetic demo scene (24 views, 320x240, a furnished room), run the
-    /// pipeline and the --no-proposals baseline, and print LERF-style selection mIoU /
-    /// Acc@0.25, ScanNet-style mIoU, proposal ARI and timings. Overlays of the selections on
-    /// the rendered views are written under OUT/out/query/overlay/.
+    /// Generate the synthetic demo scene (24 views, 320x240, a furnished room; --preset and
+    /// --faults pick another synth scene), run the pipeline and the --no-proposals
+    /// baseline, and print LERF-style selection mIoU / Acc@0.25, ScanNet-style mIoU,
+    /// proposal ARI / purity / completeness, the wrong-class pixel share of both methods
+    /// and timings. Overlays of the selections on the rendered views are written under
+    /// OUT/out/query/overlay/.
     Demo {
         /// Scene directory to generate into (default: <temp dir>/profuse-demo).
         #[arg(long)]
@@ -64,18 +71,91 @@ enum Command {
         /// Seed of the synthetic scene.
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        #[command(flatten)]
+        scene: SceneArgs,
         /// Print one JSON object instead of the text report.
         #[arg(long)]
         json: bool,
         #[command(flatten)]
         common: Common,
     },
+    /// The accuracy harness: for every fault set (outer) and seed (inner), generate the
+    /// synthetic scene, run the pipeline with the demo's settings (plus --config / --set,
+    /// the same for both methods) and the --no-proposals baseline, and score both. Rows
+    /// run one after the other; each equals `profuse demo --seed S --faults F --json` with
+    /// the same options. Prints a table (or, with --json, one object {rows, summary}) on
+    /// stdout; progress (row i/n, seed, faults, elapsed) on stderr.
+    Sweep {
+        /// Seeds: comma-separated seeds and inclusive ranges, e.g. `0-15`, `0,3,7`, `0-3,9`.
+        #[arg(long, value_name = "LIST")]
+        seeds: String,
+        /// Fault sets, comma-separated (default, noisy-features, harsh-segmentation,
+        /// sparse-views; see `synth --help`).
+        #[arg(long, value_name = "LIST", default_value = "default")]
+        faults: String,
+        /// The synth preset of every scene.
+        #[arg(long, value_enum, default_value = "demo")]
+        preset: PresetArg,
+        /// Print one JSON object {rows, summary} instead of the table.
+        #[arg(long)]
+        json: bool,
+        /// Directory for the scenes (one subdirectory `<faults>-seed<S>` per row; the
+        /// report is also written to DIR/sweep.json). Default: a temporary directory,
+        /// removed at the end unless --keep.
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+        /// Keep every row's scene and pipeline outputs (default: removed after the row).
+        #[arg(long)]
+        keep: bool,
+        /// TOML configuration whose keys apply on top of the demo's settings (to both
+        /// methods).
+        #[arg(long, value_name = "TOML")]
+        config: Option<PathBuf>,
+        /// Override one parameter (TOML value; repeatable; after --config), e.g.
+        /// `--set fuse.k=40`.
+        #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
+        set: Vec<String>,
+        /// No progress on stderr.
+        #[arg(long)]
+        quiet: bool,
+    },
+}
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum PresetArg {
+    /// 4 views at 64x48, D = 64 (seconds; set `pq.m` to a divisor of 64, e.g. 16).
+    Tiny,
+    /// 24 views at 320x240, 10 objects, D = 512 (the demo scene).
+    Demo,
+}
+
+impl PresetArg {
+    fn preset(self) -> synth::Preset {
+        match self {
+            PresetArg::Tiny => synth::Preset::Tiny,
+            PresetArg::Demo => synth::Preset::Demo,
+        }
+    }
+}
+
+/// The synthetic scene of `demo`.
+#[derive(Args, Debug)]
+struct SceneArgs {
+    /// The synth preset.
+    #[arg(long, value_enum, default_value = "demo")]
+    preset: PresetArg,
+    /// The synth fault set applied on top of the preset (see `synth --help`).
+    #[arg(long, value_name = "NAME", default_value = "default",
+          value_parser = clap::builder::PossibleValuesParser::new(synth::FaultSet::NAMES))]
+    faults: String,
 }
 
 #[derive(Args, Debug)]
 struct Common {
     /// TOML configuration (sections gs_init, warp_graph, fuse, pq, query, vertex_transfer;
-    /// missing keys take the paper's defaults; `out/config.toml` of a run is a complete one).
+    /// `out/config.toml` of a run is a complete one). For `run` missing keys take the
+    /// paper's defaults; for `demo` they keep the demo's settings (gs_init.budget=3000,
+    /// pq.sample=16384, pq.iters=10) and the file's keys apply on top.
     #[arg(long, value_name = "TOML")]
     config: Option<PathBuf>,
     /// Override one parameter, e.g. `--set fuse.k=40 --set query.threshold=0.6` (TOML
@@ -101,9 +181,39 @@ fn main() -> ExitCode {
         Command::Demo {
             out,
             seed,
+            scene,
             json,
             common,
-        } => demo(out, seed, json, &common),
+        } => demo(out, seed, &scene, json, &common),
+        Command::Sweep {
+            seeds,
+            faults,
+            preset,
+            json,
+            out,
+            keep,
+            config,
+            set,
+            quiet,
+        } => {
+            let opts = (|| -> Result<SweepOptions, BoxError> {
+                Ok(SweepOptions {
+                    seeds: sweep::parse_seeds(&seeds)?,
+                    faults: sweep::parse_fault_sets(&faults)?,
+                    preset: preset.preset(),
+                    out,
+                    keep,
+                    config: demo_config(config.as_deref(), &set)?,
+                })
+            })();
+            match opts {
+                Ok(opts) => run_sweep(&opts, json, quiet),
+                Err(e) => {
+                    profuse_tools::report_error(&*e);
+                    ExitCode::FAILURE
+                }
+            }
+        }
     }
 }
 
@@ -193,8 +303,7 @@ impl Display {
 }
 
 /// The timing table in the shape of the paper's Table 4.
-fn print_timing(summary: &Summary) {
-    let t = &summary.timing_s;
+fn print_timing(t: &std::collections::BTreeMap<String, f64>) {
     let get = |k: &str| t.get(k).copied().unwrap_or(0.0);
     eprintln!();
     eprintln!(
@@ -228,9 +337,9 @@ fn run_scene(scene: &Path, common: &Common) -> Result<Value, BoxError> {
     };
     let summary = run_pipeline(scene, &config, &opts, &|e| display.event(e))?;
     let paths = Paths::new(scene, &summary.out, config.fuse.no_proposals);
-    let scores = evaluate(&paths)?;
+    let scores = evaluate_run(&paths, &config, &summary)?;
     if chatty(common.quiet) {
-        print_timing(&summary);
+        print_timing(&summary.timing_s);
     }
     let mut value = serde_json::to_value(&summary)?;
     if let Value::Object(map) = &mut value {
@@ -248,13 +357,61 @@ fn write_json(path: &Path, value: &Value) -> Result<(), BoxError> {
     profuse_tools::write_file(path, &serde_json::to_vec_pretty(value)?)
 }
 
-fn demo(out: Option<PathBuf>, seed: u64, as_json: bool, common: &Common) -> ExitCode {
-    match demo_body(out, seed, common) {
+/// The demo's configuration: DEMO_SETTINGS, then the keys of --config, then --set.
+fn demo_config(config: Option<&Path>, set: &[String]) -> Result<Config, BoxError> {
+    let text = match config {
+        Some(path) => Some(
+            std::fs::read_to_string(path)
+                .map_err(|e| format!("{}: cannot read the configuration: {e}", path.display()))?,
+        ),
+        None => None,
+    };
+    let label = config.map(|p| p.display().to_string()).unwrap_or_default();
+    Ok(demo::demo_config(
+        text.as_deref().map(|t| (t, label.as_str())),
+        set,
+    )?)
+}
+
+fn demo(
+    out: Option<PathBuf>,
+    seed: u64,
+    scene: &SceneArgs,
+    as_json: bool,
+    common: &Common,
+) -> ExitCode {
+    let body = || -> Result<Value, BoxError> {
+        let show = chatty(common.quiet);
+        let opts = DemoOptions {
+            scene: out,
+            seed,
+            preset: scene.preset.preset(),
+            faults: synth::FaultSet::parse(&scene.faults)?,
+            config: demo_config(common.config.as_deref(), &common.set)?,
+            run: RunOptions {
+                out: common.out_dir.clone(),
+                force: common.force,
+            },
+        };
+        let display = Display::new(show);
+        let value = demo::run_demo(&opts, &|e| display.event(e), &|msg| {
+            if show {
+                eprintln!("{msg}");
+            }
+        })?;
+        if show {
+            if let Ok(timing) = serde_json::from_value(value["timing_s"].clone()) {
+                print_timing(&timing);
+            }
+        }
+        Ok(value)
+    };
+    match body() {
         Ok(value) => {
             let text = if as_json {
                 serde_json::to_string_pretty(&value).unwrap_or_default()
             } else {
-                demo_text(&value)
+                demo::demo_text(&value)
             };
             if writeln!(std::io::stdout().lock(), "{text}").is_err() {
                 return ExitCode::FAILURE;
@@ -268,145 +425,49 @@ fn demo(out: Option<PathBuf>, seed: u64, as_json: bool, common: &Common) -> Exit
     }
 }
 
-/// The demo's departures from the paper's defaults, so that it runs in about a minute on
-/// two cores: gs-init samples 3,000 matches per reference view (the paper's 15,000 are for
-/// ~1000x730 photos, 2% of their pixels; 3,000 is 4% of a 320x240 view), and PQ trains on
-/// 16,384 vectors (64 per centroid) for 10 iterations instead of faiss's 65,536 for 25.
-const DEMO_SETTINGS: [&str; 3] = ["gs_init.budget=3000", "pq.sample=16384", "pq.iters=10"];
-
-/// The synth `demo` preset with CLIP-like mask features: per-mask noise 1.5 (cosine to the
-/// class prototype about 0.55), 10% of masks pulled toward a wrong class, and noise that
-/// grows as sqrt(40000 / area) for masks under 40,000 pixels (half the view), because
-/// CLIP embeds small crops less reliably. The preset's own features are nearly noise-free,
-/// which leaves nothing for cross-view proposals to fix.
-fn demo_scene_config(seed: u64) -> synth::Config {
-    let mut c = synth::Config::preset(synth::Preset::Demo, seed);
-    c.faults.feature_noise = 1.5;
-    c.faults.p_wrong_class = 0.1;
-    c.faults.crop_noise_px = 40_000.0;
-    c
-}
-
-fn demo_body(out: Option<PathBuf>, seed: u64, common: &Common) -> Result<Value, BoxError> {
-    let scene = out.unwrap_or_else(|| std::env::temp_dir().join("profuse-demo"));
-    let show = chatty(common.quiet);
-    let t0 = std::time::Instant::now();
-    let synth_config = demo_scene_config(seed);
-    let cameras = scene.join("cameras.safetensors");
-    // Regenerate unless the same preset and seed are already there (a rerun is then fast).
-    let marker = scene.join("gt").join("scene.json");
-    let stamp = scene.join(".demo-seed");
-    let fresh = std::fs::read_to_string(&stamp).ok().as_deref() == Some(&seed.to_string());
-    if common.force || !fresh || !cameras.is_file() || !marker.is_file() {
-        if show {
-            eprintln!(
-                "generating the synthetic demo scene into {}",
-                scene.display()
-            );
+fn run_sweep(opts: &SweepOptions, as_json: bool, quiet: bool) -> ExitCode {
+    let show = chatty(quiet);
+    let events = |e: SweepEvent<'_>| {
+        if !show {
+            return;
         }
-        synth::generate(&synth_config, &scene)?;
-        std::fs::write(&stamp, seed.to_string())?;
-    }
-    let generate_s = t0.elapsed().as_secs_f64();
-
-    let config = Config::default()
-        .with_overrides(&DEMO_SETTINGS.map(String::from))?
-        .with_overrides(&common.set)?;
-    let config = match &common.config {
-        Some(_) => load_config(common)?,
-        None => config,
+        match e {
+            SweepEvent::RowStart {
+                index,
+                total,
+                seed,
+                faults,
+                elapsed,
+            } => eprintln!("row {index}/{total}: seed {seed}, faults {faults} ({elapsed:.0} s elapsed)"),
+            SweepEvent::RowDone {
+                index,
+                total,
+                row,
+                elapsed,
+            } => eprintln!(
+                "row {index}/{total} done in {:.1} s: LERF mIoU {:.2} vs {:.2} ({elapsed:.0} s elapsed)",
+                row.seconds, row.lerf_miou, row.baseline_lerf_miou
+            ),
+        }
     };
-    let display = Display::new(show);
-    let opts = RunOptions {
-        out: common.out_dir.clone(),
-        force: common.force,
-    };
-    let full = run_pipeline(&scene, &config, &opts, &|e| display.event(e))?;
-    let mut baseline_config = config.clone();
-    baseline_config.fuse.no_proposals = true;
-    let baseline = run_pipeline(&scene, &baseline_config, &opts, &|e| display.event(e))?;
-    let scores = evaluate(&Paths::new(&scene, &full.out, false))?;
-    let base_scores = evaluate(&Paths::new(&scene, &baseline.out, true))?;
-    if show {
-        print_timing(&full);
-    }
-
-    let pick = |m: &std::collections::BTreeMap<String, Value>, k: &str| {
-        m.get(k).cloned().unwrap_or(Value::Null)
-    };
-    let mut timing = Map::new();
-    timing.insert("generate".into(), json!(generate_s));
-    for (k, v) in &full.timing_s {
-        timing.insert(k.clone(), json!(v));
-    }
-    for l in &baseline.stages {
-        if l.stage.ends_with("_baseline") {
-            timing.insert(l.stage.clone(), json!(l.seconds));
+    match sweep::sweep(opts, &events) {
+        Ok(report) => {
+            if show && opts.keep {
+                eprintln!("scenes kept under {}", sweep::parent_dir(opts).display());
+            }
+            let text = if as_json {
+                serde_json::to_string_pretty(&report).unwrap_or_default()
+            } else {
+                sweep::text_table(&report)
+            };
+            if writeln!(std::io::stdout().lock(), "{text}").is_err() {
+                return ExitCode::FAILURE;
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            profuse_tools::report_error(&e);
+            ExitCode::FAILURE
         }
     }
-    timing.insert("wall".into(), json!(t0.elapsed().as_secs_f64()));
-    let overlays = full.out.join("query").join("overlay");
-    let value = json!({
-        "scene": scene,
-        "out": full.out,
-        "lerf_miou": pick(&scores, "lerf_miou"),
-        "lerf_acc25": pick(&scores, "lerf_acc25"),
-        "baseline_lerf_miou": pick(&base_scores, "lerf_miou"),
-        "baseline_lerf_acc25": pick(&base_scores, "lerf_acc25"),
-        "scannet_miou19": pick(&scores, "scannet_miou19"),
-        "scannet_miou15": pick(&scores, "scannet_miou15"),
-        "scannet_miou10": pick(&scores, "scannet_miou10"),
-        "baseline_scannet_miou19": pick(&base_scores, "scannet_miou19"),
-        "proposals_ari": pick(&scores, "proposals_ari"),
-        "init_median_surface_dist_rel": pick(&scores, "init_median_surface_dist_rel"),
-        "timing_s": Value::Object(timing),
-        "overlays": overlays,
-        "metrics": scores,
-        "baseline_metrics": base_scores,
-    });
-    write_json(&full.out.join("demo.json"), &value)?;
-    Ok(value)
-}
-
-fn demo_text(v: &Value) -> String {
-    let num = |k: &str| {
-        v[k].as_f64()
-            .map_or("n/a".to_string(), |x| format!("{x:.2}"))
-    };
-    let t = |k: &str| {
-        v["timing_s"][k]
-            .as_f64()
-            .map_or("n/a".to_string(), |x| format!("{x:.2} s"))
-    };
-    format!(
-        "ProFuse demo on the synthetic scene {scene}\n\
-         \n\
-         3D object selection (LERF-OVS protocol, eval frames x class prompts)\n\
-         \x20 ProFuse (3D Context Proposals)   mIoU {m}  Acc@0.25 {a}\n\
-         \x20 --no-proposals baseline           mIoU {bm}  Acc@0.25 {ba}\n\
-         Point-cloud understanding (ScanNet protocol on the labelled mesh)\n\
-         \x20 mIoU 19 classes {s19}  15 classes {s15}  10 classes {s10}\n\
-         Pre-registration\n\
-         \x20 proposals ARI {ari}   initial Gaussians' median distance to the surface {d} of the scene extent\n\
-         Time: geometry {tg}, semantics {ts}, indexing {ti}, total {tt} (wall {tw})\n\
-         Selections over the rendered views: {ov}/<frame>/<prompt>.png",
-        scene = v["scene"].as_str().unwrap_or(""),
-        m = num("lerf_miou"),
-        a = num("lerf_acc25"),
-        bm = num("baseline_lerf_miou"),
-        ba = num("baseline_lerf_acc25"),
-        s19 = num("scannet_miou19"),
-        s15 = num("scannet_miou15"),
-        s10 = num("scannet_miou10"),
-        ari = num("proposals_ari"),
-        d = v["init_median_surface_dist_rel"]
-            .as_f64()
-            .map_or("n/a".into(), |x| format!("{:.2e}", x)),
-        tg = t("geometry"),
-        ts = t("semantics"),
-        ti = t("indexing"),
-        tt = t("total"),
-        tw = t("wall"),
-        ov = v["overlays"].as_str().unwrap_or(""),
-    )
 }

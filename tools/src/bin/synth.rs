@@ -9,7 +9,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, ValueEnum};
 use profuse_tools::{chatty, run, BoxError};
-use synth::{generate_with_progress, Config, FaultModel, MatchPrecision, Preset};
+use synth::{generate_with_progress, Config, FaultModel, FaultSet, MatchPrecision, Preset};
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum PresetArg {
@@ -56,6 +56,15 @@ struct Cli {
     /// Do not print progress on stderr.
     #[arg(long)]
     quiet: bool,
+    /// A named fault set applied on top of the preset, before every other flag (so the
+    /// flags below win): `default` (what `profuse demo` uses: feature_noise 1.5,
+    /// p_wrong_class 0.1, crop_noise_px 40000, the preset's mask faults);
+    /// `noisy-features` (default + feature_noise 2.5, p_wrong_class 0.25);
+    /// `harsh-segmentation` (default + p_split 0.35, p_merge 0.3); `sparse-views`
+    /// (default + views 12, warp_noise_px 1.0, outlier_frac 0.1). Without it the preset's
+    /// own values apply.
+    #[arg(long, value_name = "NAME", value_parser = clap::builder::PossibleValuesParser::new(FaultSet::NAMES))]
+    faults: Option<String>,
 
     // --- scene and cameras ---
     /// Number of views.
@@ -194,6 +203,9 @@ fn config_from(cli: &Cli) -> Result<Config, BoxError> {
         PresetArg::Scale => Preset::Scale,
     };
     let mut c = Config::preset(preset, cli.seed);
+    if let Some(name) = &cli.faults {
+        FaultSet::parse(name)?.apply(&mut c);
+    }
     macro_rules! set {
         ($($field:ident <- $arg:expr),* $(,)?) => { $( if let Some(v) = $arg.clone() { c.$field = v; } )* };
     }
@@ -279,6 +291,10 @@ fn main() -> ExitCode {
             eprintln!();
         }
         let summary = summary?;
-        serde_json::to_value(&summary).map_err(|e| -> BoxError { Box::new(e) })
+        let mut value = serde_json::to_value(&summary).map_err(|e| -> BoxError { Box::new(e) })?;
+        if let (Some(name), serde_json::Value::Object(map)) = (&cli.faults, &mut value) {
+            map.insert("faults".into(), name.clone().into());
+        }
+        Ok(value)
     })
 }

@@ -1,0 +1,74 @@
+//! `registered_mask_descriptors`: what each mask's pixels register, checked against the
+//! groups and the group descriptors, and against a Gaussian fed by one group only.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use profuse_formats::{Cameras, FileKind, Gaussians, Masks};
+use profuse_fuse::{
+    accumulate, group_descriptors, registered_mask_descriptors, Groups, Orphans, Scene, NO_GROUP,
+};
+
+#[test]
+fn each_mask_gets_its_groups_descriptor_or_none() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = synth::Config::preset(synth::Preset::Tiny, 2);
+    config.gaussians = 2000;
+    config.write_matches = false;
+    synth::generate(&config, dir.path()).unwrap();
+    let gaussians = Gaussians::read(dir.path().join("gt/gaussians.safetensors")).unwrap();
+    let cameras = Cameras::read(dir.path().join("cameras.safetensors")).unwrap();
+    let masks = Masks::read(dir.path().join("masks.safetensors")).unwrap();
+    let proposals = profuse_fuse::testing::proposals_from_mask_objects(
+        dir.path().join("gt/mask_objects.json"),
+        &masks,
+        2,
+    )
+    .unwrap();
+    let scene = Scene::new(&gaussians, &cameras, &masks);
+    let d = masks.dim;
+
+    // Proposals (objects with a single mask are orphans and register nothing).
+    let groups = Groups::from_proposals(&masks, &proposals, Orphans::Ignore, "p").unwrap();
+    let partial = accumulate(&scene, &groups, 10, 0..cameras.len(), &mut |_| {}).unwrap();
+    let desc = group_descriptors(&partial);
+    let reg = registered_mask_descriptors(&partial);
+    assert_eq!(reg.len(), masks.num_masks());
+    let mut orphans = 0;
+    for (m, r) in reg.iter().enumerate() {
+        let g = groups.mask_group[m];
+        if g == NO_GROUP {
+            orphans += 1;
+            assert!(r.is_none(), "orphan mask {m}");
+            continue;
+        }
+        let want: Vec<f32> = desc[g as usize * d..][..d]
+            .iter()
+            .map(|x| *x as f32)
+            .collect();
+        match r {
+            Some(r) => assert_eq!(r, &want, "mask {m}"),
+            None => assert!(want.iter().all(|x| *x == 0.0), "mask {m}"),
+        }
+    }
+    assert!(orphans > 0 && orphans < masks.num_masks());
+    // Masks of one proposal register the same descriptor.
+    for a in 0..reg.len() {
+        for b in a + 1..reg.len() {
+            if groups.mask_group[a] == groups.mask_group[b] && groups.mask_group[a] != NO_GROUP {
+                assert_eq!(reg[a], reg[b]);
+            }
+        }
+    }
+
+    // Baseline: every mask registers its own (unit) feature.
+    let groups = Groups::per_mask(&masks);
+    let partial = accumulate(&scene, &groups, 10, 0..cameras.len(), &mut |_| {}).unwrap();
+    let reg = registered_mask_descriptors(&partial);
+    let mut f = vec![0f32; d];
+    for (m, r) in reg.iter().enumerate() {
+        masks.features.read_into(m * d, &mut f);
+        let r = r.as_ref().unwrap();
+        let cos: f64 = r.iter().zip(&f).map(|(a, b)| f64::from(*a * *b)).sum();
+        assert!((cos - 1.0).abs() < 1e-3, "mask {m}: cosine {cos}");
+    }
+}
