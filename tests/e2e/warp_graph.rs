@@ -53,7 +53,19 @@ fn run_on_a_tiny_synthetic_scene_writes_valid_proposals() {
         "--gaussians",
         gauss.to_str().unwrap(),
         "--quiet",
+        "--grouping",
+        "links",
     ];
+    // With cameras and Gaussians the default (auto) is the consensus grouping.
+    let auto = dir.path().join("auto.safetensors");
+    let o = warp_graph(&scene, &auto, &geometry[..5], None);
+    super::assert_succeeded(&o);
+    assert_eq!(super::json(&o)["grouping"], "consensus");
+    let p = Proposals::read(&auto).unwrap();
+    assert_eq!(
+        p.extra.get("grouping").map(String::as_str),
+        Some("consensus")
+    );
     let o = warp_graph(&scene, &out, &geometry, None);
     super::assert_succeeded(&o);
     let r = super::json(&o);
@@ -85,7 +97,8 @@ fn run_on_a_tiny_synthetic_scene_writes_valid_proposals() {
     assert_eq!(p.len() as u64, r["proposals"].as_u64().unwrap());
     assert_eq!(p.extra.get("visibility").map(String::as_str), Some("both"));
     assert_eq!(p.extra.get("tau_iou").map(String::as_str), Some("0.2"));
-    // With Gaussians the masks are lifted to 3D and the extent rules run (default on).
+    // With the link grouping and Gaussians the masks are lifted to 3D and the extent rules
+    // run (default on).
     assert_eq!(r["extents"], true, "{r}");
     assert_eq!(
         p.extra.get("extent_merge_iou").map(String::as_str),

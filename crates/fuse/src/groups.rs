@@ -10,13 +10,20 @@ use crate::error::Result;
 pub const NO_GROUP: u32 = NO_PROPOSAL;
 
 /// What to do with masks whose proposal was filtered out (`mask_proposal` = none).
+///
+/// The default is `Singleton`: the masks a grouping leaves out (under-segmented masks that
+/// the consensus grouping drops, fragments below `s_min`) still carry evidence, and
+/// ignoring them leaves their pixels without semantics, which the per-mask baseline never
+/// does. On the synthetic demo with the consensus grouping, `singleton` raised the
+/// ScanNet-protocol mIoU19 by 2-7 points over `ignore` and left LERF within ±0.2 (seeds
+/// 0, 3, 4; harsh segmentation seed 0: +7.1, LERF +0.3).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Orphans {
     /// Their pixels register nothing (the paper: pixels outside every proposal get the
     /// null label).
-    #[default]
     Ignore,
     /// Each becomes a proposal of its own, with its own feature.
+    #[default]
     Singleton,
 }
 

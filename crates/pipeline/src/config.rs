@@ -154,8 +154,9 @@ pub struct WarpGraph {
     pub extent_trim: f64,
     /// Box padding on each side, as a share of the scene diagonal.
     pub extent_pad: f64,
-    /// How masks become proposals: `links` (paper Algorithm 1 with the guard and extent
-    /// rules above) or `consensus` (view consensus over the Gaussian centres).
+    /// How masks become proposals: `auto` (consensus, since the pipeline always has
+    /// cameras and Gaussians), `links` (paper Algorithm 1 with the guard and extent rules
+    /// above) or `consensus` (view consensus over the Gaussians).
     pub grouping: String,
     /// Consensus: share of a mask's points that must carry a label in a view for the view
     /// to observe it.
@@ -234,7 +235,11 @@ impl WarpGraph {
             }
         };
         let grouping = warp_graph::Grouping::parse(&self.grouping).ok_or_else(|| {
-            config_err("warp_graph.grouping", &self.grouping, "links or consensus")
+            config_err(
+                "warp_graph.grouping",
+                &self.grouping,
+                "auto, links or consensus",
+            )
         })?;
         Ok(warp_graph::Params {
             grouping,
@@ -283,7 +288,7 @@ impl Default for Fuse {
     fn default() -> Self {
         Fuse {
             k: profuse_fuse::DEFAULT_K,
-            orphans: "ignore".into(),
+            orphans: profuse_fuse::Orphans::default().name().into(),
             no_proposals: false,
         }
     }

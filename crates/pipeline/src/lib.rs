@@ -50,6 +50,4 @@ pub mod stage;
 pub mod sweep;
 
 pub use error::{PipelineError, Result};
-pub use run::{
-    run, Event, Paths, RegisteredMasks, RunOptions, StageLine, Summary, SCANNET_SETS,
-};
+pub use run::{run, Event, Paths, RegisteredMasks, RunOptions, StageLine, Summary, SCANNET_SETS};

@@ -42,11 +42,14 @@ fn tiny_run_meets_metric_floors() {
     );
     let m = evaluate(&Paths::new(dir.path(), &s.out, false)).unwrap();
     let get = |k: &str| m[k].as_f64().unwrap();
-    // Measured on tiny seed 0 (64x48 views): 6e-9, 0.70, 34.3, 57.1, 19.4. The floors sit
-    // well below, and far above what any broken stage gives (random descriptors select
-    // nothing: LERF mIoU ~0; missing proposals: ARI ~0; a wrong triangulation: >1e-2).
+    // Measured on tiny seed 0 (64x48 views) with the default consensus grouping and
+    // singleton orphans: 6e-9, 0.47, 49.9, 71.4, 27.4 (the link grouping with ignored
+    // orphans: ARI 0.70, LERF 34.3 / 57.1, ScanNet 19.4; four views give the consensus few
+    // observers). The floors sit well below, and far above what any broken stage gives
+    // (random descriptors select nothing: LERF mIoU ~0; missing proposals: ARI ~0; a
+    // wrong triangulation: >1e-2).
     assert!(get("init_median_surface_dist_rel") < 1e-4, "{m:?}");
-    assert!(get("proposals_ari") > 0.5, "{m:?}");
+    assert!(get("proposals_ari") > 0.35, "{m:?}");
     assert!(get("lerf_miou") > 25.0, "{m:?}");
     assert!(get("lerf_acc25") > 40.0, "{m:?}");
     assert!(get("scannet_miou19") > 12.0, "{m:?}");

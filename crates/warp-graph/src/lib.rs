@@ -220,7 +220,7 @@ pub struct Report {
     pub edges_accepted: u64,
     /// Why the other candidates were rejected.
     pub rejections: Rejections,
-    /// How masks became proposals (`links` or `consensus`).
+    /// How masks became proposals (`links` or `consensus`; `auto` resolved).
     pub grouping: &'static str,
     /// What the view-consensus grouping did (with `consensus` only).
     pub consensus: Option<ConsensusStats>,
@@ -253,6 +253,8 @@ pub struct Association<'a> {
     depth: Option<DepthCache<'a>>,
     /// The Gaussians (points of the consensus grouping).
     gaussians: Option<&'a Gaussians>,
+    /// The grouping in use (never `Auto`).
+    grouping: Grouping,
     /// The scene bounds of the extents, when the extent rules run.
     bounds: Option<Bounds>,
     /// Per view, its masks' extents once computed (empty without `bounds`).
@@ -302,13 +304,21 @@ impl<'a> Association<'a> {
                 what: "the depth visibility test",
             });
         }
-        let extent_rules = params.same_view_support.is_some()
+        let grouping = match params.grouping {
+            Grouping::Auto if inputs.cameras.is_some() && inputs.gaussians.is_some() => {
+                Grouping::Consensus
+            }
+            Grouping::Auto => Grouping::Links,
+            g => g,
+        };
+        let extent_rules = grouping == Grouping::Links
+            && params.same_view_support.is_some()
             && (params.extent_agreement.is_some() || params.extent_merge_iou.is_some());
         let bounds = match inputs.gaussians {
             Some(g) if extent_rules && inputs.cameras.is_some() => Bounds::from_points(&g.means),
             _ => None,
         };
-        let consensus = params.grouping == Grouping::Consensus;
+        let consensus = grouping == Grouping::Consensus;
         if consensus && (inputs.cameras.is_none() || inputs.gaussians.is_none()) {
             return Err(WarpGraphError::MissingGaussians {
                 what: "the view-consensus grouping",
@@ -348,6 +358,7 @@ impl<'a> Association<'a> {
             visibility,
             depth,
             gaussians: inputs.gaussians,
+            grouping,
             bounds,
             view_extents,
         })
@@ -356,6 +367,11 @@ impl<'a> Association<'a> {
     /// The occlusion test in use (never `Auto`).
     pub fn visibility(&self) -> Visibility {
         self.visibility
+    }
+
+    /// The grouping in use (never `Auto`).
+    pub fn grouping(&self) -> Grouping {
+        self.grouping
     }
 
     /// The overlaps of one directed warp (row `row` of the matches' `pairs`).
@@ -398,8 +414,8 @@ impl<'a> Association<'a> {
             skipped += usize::from(r.skipped);
         }
         let masks = self.frame.masks;
-        let (extents, proposals, components, consensus) = match self.params.grouping {
-            Grouping::Links => {
+        let (extents, proposals, components, consensus) = match self.grouping {
+            Grouping::Links | Grouping::Auto => {
                 let extents = self.mask_extents()?;
                 let (p, c) = graph::proposals_from_links(
                     &masks.mask_offsets,
@@ -434,7 +450,7 @@ impl<'a> Association<'a> {
             edges_tested: tested,
             edges_accepted: edges.len() as u64,
             rejections,
-            grouping: self.params.grouping.name(),
+            grouping: self.grouping.name(),
             consensus,
             components,
         };
@@ -608,10 +624,10 @@ impl<'a> Association<'a> {
         ]);
         // Only the consensus grouping adds keys, so files of the link grouping keep their
         // bytes.
-        if p.grouping == Grouping::Consensus {
+        if self.grouping == Grouping::Consensus {
             let c = &p.consensus;
             m.extend([
-                ("grouping".to_string(), p.grouping.name().to_string()),
+                ("grouping".to_string(), self.grouping.name().to_string()),
                 (
                     "consensus_visible_ratio".to_string(),
                     c.visible_ratio.to_string(),

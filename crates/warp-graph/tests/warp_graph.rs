@@ -97,6 +97,15 @@ fn identity(x: usize, y: usize) -> Option<(f64, f64)> {
 fn plain() -> Params {
     Params {
         visibility: Visibility::None,
+        grouping: Grouping::Links,
+        ..Params::default()
+    }
+}
+
+/// The link grouping (Algorithm 1 with the guard and extent rules), whatever the inputs.
+fn links() -> Params {
+    Params {
+        grouping: Grouping::Links,
         ..Params::default()
     }
 }
@@ -1059,7 +1068,7 @@ fn demo_scene_proposals_score_against_the_true_objects() {
     let guard_only = Params {
         extent_agreement: None,
         extent_merge_iou: None,
-        ..Params::default()
+        ..links()
     };
     for vis in [
         Visibility::Auto,
@@ -1080,7 +1089,7 @@ fn demo_scene_proposals_score_against_the_true_objects() {
         // fragments no warp connects are merged.
         let (e, o) = score(&Params {
             visibility: vis,
-            ..Params::default()
+            ..links()
         });
         assert!(o.report.extents);
         assert!(o.report.components.extent_merges > 0, "{:?}", o.report);
@@ -1094,14 +1103,14 @@ fn demo_scene_proposals_score_against_the_true_objects() {
     // The paper's plain components: under-segmented masks glue objects together.
     let (s, o) = score(&Params {
         same_view_support: None,
-        ..Params::default()
+        ..links()
     });
     assert!(s.purity < 0.7 && s.ari < 0.6, "{s:?}");
     assert_eq!(o.report.components.refused_links, 0);
     // Depth rendering and clustering are deterministic across thread counts.
     let bytes = |threads| {
         in_pool(threads, || {
-            build_proposals(inputs, &Params::default())
+            build_proposals(inputs, &links())
                 .unwrap()
                 .proposals
                 .to_bytes()
@@ -1145,7 +1154,7 @@ fn consensus_grouping_stays_pure_under_harsh_segmentation() {
         grouping: Grouping::Consensus,
         ..Params::default()
     };
-    let (links, _) = score(&Params::default());
+    let (links, _) = score(&links());
     let (c, o) = score(&consensus);
     let stats = o.report.consensus.clone().unwrap();
     assert!(stats.undersegmented > 0, "{stats:?}");
@@ -1170,9 +1179,16 @@ fn consensus_grouping_stays_pure_under_harsh_segmentation() {
         })
     };
     assert_eq!(bytes(1), bytes(4));
-    // Without Gaussians the consensus grouping has no points: a clear error.
+    // The default (auto) is the consensus grouping when Gaussians are given.
+    let auto = build_proposals(inputs, &Params::default()).unwrap();
+    assert_eq!(auto.report.grouping, "consensus");
+    assert_eq!(auto.proposals.to_bytes().unwrap(), bytes(1));
+    // Without Gaussians the consensus grouping has no points: a clear error, while auto
+    // falls back to the links.
     let err = build_proposals(Inputs::new(&m, &t), &consensus).unwrap_err();
     assert!(err.to_string().contains("consensus"), "{err}");
+    let no_geometry = build_proposals(Inputs::new(&m, &t), &Params::default()).unwrap();
+    assert_eq!(no_geometry.report.grouping, "links");
 }
 
 /// With exact masks (no faults) every proposal is pure; what remains is the fragmentation

@@ -114,8 +114,9 @@ struct RunArgs {
     /// Top-K contributors per pixel (1..=256).
     #[arg(long, default_value_t = DEFAULT_K as u16, value_parser = clap::value_parser!(u16).range(1..=256))]
     k: u16,
-    /// Masks without a proposal: ignore their pixels (paper) or make each its own proposal.
-    #[arg(long, value_enum, default_value = "ignore")]
+    /// Masks without a proposal: make each its own proposal with its own feature (default:
+    /// masks the grouping leaves out keep their evidence), or ignore their pixels (paper).
+    #[arg(long, value_enum, default_value = "singleton")]
     orphans: OrphansArg,
     /// Process only views a..b (half-open): a shard; with --out the features come from
     /// these views alone.

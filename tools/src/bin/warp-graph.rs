@@ -182,9 +182,10 @@ struct ParamArgs {
     #[arg(long, default_value_t = 0.01)]
     extent_pad: f64,
     /// How masks become proposals: `links` (the warp links of Algorithm 1, with the guard
-    /// and extent rules above) or `consensus` (view consensus over the Gaussian centres;
-    /// needs --cameras and --gaussians; see the crate README).
-    #[arg(long, value_enum, default_value = "links")]
+    /// and extent rules above), `consensus` (view consensus over the Gaussians; needs
+    /// --cameras and --gaussians; see the crate README), or `auto` (consensus when
+    /// --cameras and --gaussians are given, else links).
+    #[arg(long, value_enum, default_value = "auto")]
     grouping: GroupingArg,
     /// Consensus: a view observes a mask when at least this share of the mask's points
     /// carry a label there.
@@ -213,6 +214,7 @@ struct ParamArgs {
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum GroupingArg {
+    Auto,
     Links,
     Consensus,
 }
@@ -247,6 +249,7 @@ impl ParamArgs {
             extent_trim: self.extent_trim,
             extent_pad: self.extent_pad,
             grouping: match self.grouping {
+                GroupingArg::Auto => Grouping::Auto,
                 GroupingArg::Links => Grouping::Links,
                 GroupingArg::Consensus => Grouping::Consensus,
             },
