@@ -446,9 +446,9 @@ fn blend_table(p: &PartialSums) -> Table {
     }
     let mut num = vec![0f64; num_proposals];
     let mut den = vec![0f64; num_proposals];
-    for m in 0..m_count {
+    for (m, a) in agreement.iter().enumerate() {
         if let Some(r) = rank(m) {
-            num[r] += mass(m) * agreement[m];
+            num[r] += mass(m) * a;
             den[r] += mass(m);
         }
     }
