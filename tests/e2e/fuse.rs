@@ -171,6 +171,69 @@ fn fuse_no_proposals_baseline() {
     assert_eq!(inspect["tensors"]["features"]["dtype"], "F32", "{inspect}");
 }
 
+/// `--registration blend`: the features record grouping `blend`, view shards merged by
+/// `fuse merge` give the single run's bytes, and it cannot be combined with
+/// `--no-proposals`.
+#[test]
+fn fuse_blend_registration_shards_merge_to_the_single_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = tiny_scene(dir.path());
+    let ins = inputs(&scene);
+    let whole = dir.path().join("blend.safetensors");
+    let blend: [&OsStr; 2] = ["--registration".as_ref(), "blend".as_ref()];
+    let mut extra = blend.to_vec();
+    extra.extend(["--out".as_ref(), whole.as_os_str()]);
+    let out = fuse(&run_args(&ins, &extra));
+    super::assert_succeeded(&out);
+    let j = super::json(&out);
+    let masks = Masks::read(scene.join("masks.safetensors")).unwrap();
+    assert_eq!(j["grouping"], "blend");
+    assert_eq!(j["groups"].as_u64(), Some(masks.num_masks() as u64));
+    assert!(j["valid"].as_u64().unwrap() > 2000, "{j}");
+    let inspect = super::json(&super::profuse(&["inspect", whole.to_str().unwrap()]));
+    assert_eq!(inspect["valid"], true, "{inspect}");
+    assert_eq!(inspect["metadata"]["grouping"], "blend", "{inspect}");
+
+    let parts: Vec<PathBuf> = (0..2)
+        .map(|i| dir.path().join(format!("blend{i}.partial")))
+        .collect();
+    for (range, part) in ["0..3", "3..4"].iter().zip(&parts) {
+        let mut extra = blend.to_vec();
+        extra.extend([
+            "--views".as_ref(),
+            range.as_ref(),
+            "--partial-out".as_ref(),
+            part.as_os_str(),
+        ]);
+        super::assert_succeeded(&fuse(&run_args(&ins, &extra)));
+    }
+    let merged = dir.path().join("merged.safetensors");
+    let out = fuse(&[
+        "merge".as_ref(),
+        parts[1].as_os_str(),
+        parts[0].as_os_str(),
+        "--out".as_ref(),
+        merged.as_os_str(),
+    ]);
+    super::assert_succeeded(&out);
+    assert_eq!(
+        std::fs::read(&merged).unwrap(),
+        std::fs::read(&whole).unwrap(),
+        "sharded + merged blend differs from the single run"
+    );
+
+    let mut extra = blend.to_vec();
+    let never = dir.path().join("never.safetensors");
+    extra.extend([
+        "--no-proposals".as_ref(),
+        "--out".as_ref(),
+        never.as_os_str(),
+    ]);
+    let out = fuse(&run_args(&ins[..6], &extra));
+    assert!(!out.status.success());
+    assert!(!never.exists());
+}
+
 /// A corrupt input exits 1, names the file on stderr and writes nothing; so does a merge
 /// whose partial files miss views.
 #[test]

@@ -1,4 +1,5 @@
-//! From W and the masses to the descriptors: proposal descriptors (eq. proposal-desc),
+//! From W and the masses to the descriptors: proposal descriptors (eq. proposal-desc), or
+//! for [`Grouping::Blend`] per-mask blends of them with the masks' own features,
 //! A = W F (eq. accumulate, as one sparse-dense product) and f_g = A / max(S, ε),
 //! L2-normalised (eq. gaussian-feature).
 
@@ -12,6 +13,7 @@ use rayon::prelude::*;
 use crate::accumulate::dequantise;
 use crate::groups::{Grouping, NO_GROUP};
 use crate::partial::PartialSums;
+use profuse_formats::NO_PROPOSAL;
 
 /// ε of eq. gaussian-feature. The division by max(S, ε) only rescales A, so it never
 /// changes a normalised descriptor; it is kept for fidelity to the paper.
@@ -100,7 +102,7 @@ pub struct Registration {
 pub fn finish(p: &PartialSums, precision: Precision) -> Registration {
     let t0 = Instant::now();
     let d = p.dim;
-    let desc = group_descriptors(p);
+    let desc = descriptor_table(p);
     let n = p.num_gaussians;
     let mut valid = vec![0u8; n];
     let mut weight_sum = vec![0f32; n];
@@ -173,7 +175,7 @@ pub fn finish(p: &PartialSums, precision: Precision) -> Registration {
 /// (with a scratch buffer).
 fn fill_rows<T: Copy + Send>(
     p: &PartialSums,
-    desc: &[f64],
+    desc: &Table,
     out: &mut [T],
     valid: &mut [u8],
     weight_sum: &mut [f32],
@@ -188,6 +190,7 @@ fn fill_rows<T: Copy + Send>(
         .for_each(|(c, ((rows, valid), sums))| {
             let mut a = vec![0f64; d];
             let mut tmp = Vec::with_capacity(d);
+            let mut columns = Columns::default();
             for (i, ((row, v), slot)) in rows
                 .chunks_exact_mut(d)
                 .zip(valid.iter_mut())
@@ -195,7 +198,11 @@ fn fill_rows<T: Copy + Send>(
                 .enumerate()
             {
                 let (groups, qs) = p.weights.row(c * chunk + i);
-                if let Some(s) = descriptor(desc, d, groups, qs, &mut a) {
+                let (groups, qs) = match &desc.column {
+                    None => (groups, qs),
+                    Some(column) => columns.gather(column, groups, qs),
+                };
+                if let Some(s) = descriptor(&desc.rows, d, groups, qs, &mut a) {
                     store(&a, row, &mut tmp);
                     *v = 1;
                     *slot = s;
@@ -236,57 +243,104 @@ fn descriptor(desc: &[f64], d: usize, groups: &[u32], qs: &[u128], a: &mut [f64]
     Some(s as f32)
 }
 
-/// Descriptor of every group, [G, D] in f64: the L2-normalised mass-weighted sum of its
-/// members' features (members in global mask order), or each mask's own normalised
-/// feature for [`Grouping::Masks`]. A group whose sum is zero gets a zero descriptor
-/// (it then has no W entries either, unless its members' features cancel exactly).
-pub fn group_descriptors(p: &PartialSums) -> Vec<f64> {
-    let d = p.dim;
-    let mut desc = vec![0f64; p.groups.num_groups * d];
-    let mut f = vec![0f32; d];
-    for (m, group) in p.groups.mask_group.iter().enumerate() {
-        if *group == NO_GROUP {
-            continue;
-        }
-        let weight = match p.groups.grouping {
-            Grouping::Proposals { .. } => dequantise(p.mask_mass[m]),
-            Grouping::Masks => 1.0,
-        };
-        if weight == 0.0 {
-            continue;
-        }
-        p.mask_features.read_into(m * d, &mut f);
-        let row = &mut desc[*group as usize * d..][..d];
-        for (r, x) in row.iter_mut().zip(&f) {
-            *r += weight * f64::from(*x);
-        }
-    }
-    for row in desc.chunks_exact_mut(d) {
-        let norm = row.iter().map(|x| x * x).sum::<f64>().sqrt();
-        if norm > 0.0 {
-            row.iter_mut().for_each(|x| *x /= norm);
-        }
-    }
-    desc
+/// A row of W mapped to the descriptor table's rows, with the entries of groups that share
+/// a row added up (exactly, in fixed point), in ascending row order.
+#[derive(Default)]
+struct Columns {
+    pairs: Vec<(u32, u128)>,
+    rows: Vec<u32>,
+    sums: Vec<u128>,
 }
 
-/// The descriptor each global mask's pixels register (eq. accumulate adds ω f̄_{L(p)} for
-/// every pixel p of the mask): `desc[group(m)]` of [`group_descriptors`], as f32. With
-/// proposals that is the mask's proposal's mass-weighted pool, with [`Grouping::Masks`]
-/// (the `--no-proposals` baseline) the mask's own normalised feature. `None` for a mask
-/// that registers nothing: no group ([`NO_GROUP`], an ignored orphan), or a group whose
-/// descriptor is zero (no member with mass).
+impl Columns {
+    fn gather(&mut self, column: &[u32], groups: &[u32], qs: &[u128]) -> (&[u32], &[u128]) {
+        self.pairs.clear();
+        self.pairs.extend(
+            groups
+                .iter()
+                .zip(qs)
+                .map(|(g, q)| (column[*g as usize], *q)),
+        );
+        self.pairs.sort_unstable_by_key(|(row, _)| *row);
+        self.rows.clear();
+        self.sums.clear();
+        for (row, q) in &self.pairs {
+            if self.rows.last() == Some(row) {
+                if let Some(s) = self.sums.last_mut() {
+                    *s += *q;
+                }
+            } else {
+                self.rows.push(*row);
+                self.sums.push(*q);
+            }
+        }
+        (&self.rows, &self.sums)
+    }
+}
+
+/// The descriptors W is multiplied with: `rows` [R, D] in f64 and the row of every group
+/// (`None`: group g is row g).
+struct Table {
+    rows: Vec<f64>,
+    column: Option<Vec<u32>>,
+}
+
+impl Table {
+    /// The descriptor of group `g` (all zero when it has none).
+    fn group_row(&self, g: usize, d: usize) -> &[f64] {
+        let r = self.column.as_ref().map_or(g, |c| c[g] as usize);
+        &self.rows[r * d..][..d]
+    }
+}
+
+/// Above this blend weight α a mask registers its proposal's descriptor itself. α is a
+/// ratio of two f64 cosines that are equal in exact arithmetic when every member agrees
+/// equally with its proposal; their rounding (~1e-16) must not turn the paper's
+/// descriptor into a private copy that differs in the last bits (and costs a row of its
+/// own). A weight this close to 1 moves a descriptor by < 1e-9, far below F32 rounding.
+const FULL_BLEND: f64 = 1.0 - 1e-9;
+
+fn descriptor_table(p: &PartialSums) -> Table {
+    match p.groups.grouping {
+        Grouping::Proposals { .. } | Grouping::Masks => Table {
+            rows: pooled_groups(p),
+            column: None,
+        },
+        Grouping::Blend { .. } => blend_table(p),
+    }
+}
+
+/// Descriptor of every group, [G, D] in f64: the L2-normalised mass-weighted sum of its
+/// members' features (members in global mask order), or each mask's own normalised
+/// feature for [`Grouping::Masks`], or each mask's blend d_m for [`Grouping::Blend`]
+/// (zero for ignored orphans). A group whose sum is zero gets a zero descriptor
+/// (it then has no W entries either, unless its members' features cancel exactly).
+pub fn group_descriptors(p: &PartialSums) -> Vec<f64> {
+    match p.groups.grouping {
+        Grouping::Proposals { .. } | Grouping::Masks => pooled_groups(p),
+        Grouping::Blend { .. } => {
+            let table = blend_table(p);
+            (0..p.groups.num_groups)
+                .flat_map(|g| table.group_row(g, p.dim).iter().copied())
+                .collect()
+        }
+    }
+}
+
+/// Per global mask, the descriptor its pixels register (its group's: the proposal's
+/// f̄_P, its own normalised feature, or its blend d_m), in f32; `None` when it registers
+/// nothing (no group, e.g. an ignored orphan, or an all-zero descriptor).
 pub fn registered_mask_descriptors(p: &PartialSums) -> Vec<Option<Vec<f32>>> {
     let d = p.dim;
-    let desc = group_descriptors(p);
+    let table = descriptor_table(p);
     p.groups
         .mask_group
         .iter()
-        .map(|group| {
-            if *group == NO_GROUP {
+        .map(|g| {
+            if *g == NO_GROUP {
                 return None;
             }
-            let row = desc.get(*group as usize * d..(*group as usize + 1) * d)?;
+            let row = table.group_row(*g as usize, d);
             row.iter()
                 .any(|x| *x != 0.0)
                 .then(|| row.iter().map(|x| *x as f32).collect())
@@ -294,7 +348,150 @@ pub fn registered_mask_descriptors(p: &PartialSums) -> Vec<Option<Vec<f32>>> {
         .collect()
 }
 
-fn summarise(p: &PartialSums, desc: &[f64], valid: &[u8], t0: Instant) -> Summary {
+/// [G, D]: per group the normalised sum of `weight(m) f_m` over its members in global
+/// mask order (μ for proposals, 1 for the per-mask baseline).
+fn pooled_groups(p: &PartialSums) -> Vec<f64> {
+    let weight = |m: usize| match p.groups.grouping {
+        Grouping::Masks => 1.0,
+        Grouping::Proposals { .. } | Grouping::Blend { .. } => dequantise(p.mask_mass[m]),
+    };
+    let of = |m: usize| {
+        let g = p.groups.mask_group[m];
+        (g != NO_GROUP).then_some(g as usize)
+    };
+    pool(p, p.groups.num_groups, of, weight)
+}
+
+/// [R, D]: row r is the normalised sum of `weight(m) f_m` over the masks with
+/// `row_of(m) = r`, in global mask order (one routine, so the blend's f̄_P has the same
+/// bits as the paper's).
+fn pool(
+    p: &PartialSums,
+    rows: usize,
+    row_of: impl Fn(usize) -> Option<usize>,
+    weight: impl Fn(usize) -> f64,
+) -> Vec<f64> {
+    let d = p.dim;
+    let mut desc = vec![0f64; rows * d];
+    let mut f = vec![0f32; d];
+    for m in 0..p.num_masks() {
+        let Some(r) = row_of(m) else { continue };
+        let w = weight(m);
+        if w == 0.0 {
+            continue;
+        }
+        p.mask_features.read_into(m * d, &mut f);
+        let row = &mut desc[r * d..][..d];
+        for (a, x) in row.iter_mut().zip(&f) {
+            *a += w * f64::from(*x);
+        }
+    }
+    for row in desc.chunks_exact_mut(d) {
+        normalise(row);
+    }
+    desc
+}
+
+fn normalise(row: &mut [f64]) {
+    let norm = row.iter().map(|x| x * x).sum::<f64>().sqrt();
+    if norm > 0.0 {
+        row.iter_mut().for_each(|x| *x /= norm);
+    }
+}
+
+/// The blend of [`Grouping::Blend`] as a table: rows `0..P'` are the paper's f̄ of the P'
+/// proposals that have members (ascending proposal id, so a Gaussian's row is summed in
+/// the paper's order), then one row per mask. A mask with α = 1 (and the threshold
+/// [`FULL_BLEND`]) maps to its proposal's row, so where every mask is that coherent W
+/// collapses to the paper's W[g, P] = Σ_{m∈P} W[g, m] (exact integers) and the result
+/// has the paper's bytes; any other mask maps to its own row, d_m.
+fn blend_table(p: &PartialSums) -> Table {
+    let d = p.dim;
+    let m_count = p.num_masks();
+    let proposal_of = &p.groups.mask_proposal;
+    let mut ids: Vec<u32> = proposal_of
+        .iter()
+        .copied()
+        .filter(|id| *id != NO_PROPOSAL)
+        .collect();
+    ids.sort_unstable();
+    ids.dedup();
+    // Dense ranks of the proposal ids: memory follows the masks, whatever the ids.
+    let rank = |m: usize| -> Option<usize> {
+        let id = *proposal_of.get(m)?;
+        if id == NO_PROPOSAL {
+            return None;
+        }
+        ids.binary_search(&id).ok()
+    };
+    let mass = |m: usize| dequantise(p.mask_mass[m]);
+    let num_proposals = ids.len();
+    let bar = pool(p, num_proposals, rank, mass);
+
+    // a_m = cos(f_m, f̄_P) (f̄_P is unit or zero) and f̂_m per mask, c_P per proposal.
+    let mut own = vec![0f64; m_count * d];
+    let mut agreement = vec![0f64; m_count];
+    let mut f = vec![0f32; d];
+    for m in 0..m_count {
+        p.mask_features.read_into(m * d, &mut f);
+        let row = &mut own[m * d..][..d];
+        for (o, x) in row.iter_mut().zip(&f) {
+            *o = f64::from(*x);
+        }
+        normalise(row);
+        if let Some(r) = rank(m) {
+            let fbar = &bar[r * d..][..d];
+            agreement[m] = row.iter().zip(fbar).map(|(a, b)| a * b).sum::<f64>();
+        }
+    }
+    let mut num = vec![0f64; num_proposals];
+    let mut den = vec![0f64; num_proposals];
+    for (m, a) in agreement.iter().enumerate() {
+        if let Some(r) = rank(m) {
+            num[r] += mass(m) * a;
+            den[r] += mass(m);
+        }
+    }
+
+    let mut rows = bar;
+    rows.resize((num_proposals + m_count) * d, 0.0);
+    let mut column = vec![0u32; m_count];
+    for (m, slot) in column.iter_mut().enumerate() {
+        let own_row = num_proposals + m;
+        *slot = own_row as u32;
+        if p.groups.mask_group[m] == NO_GROUP {
+            continue;
+        }
+        let alpha = match rank(m) {
+            Some(r) if den[r] > 0.0 && num[r] > 0.0 => {
+                let c = num[r] / den[r];
+                (agreement[m] / c).clamp(0.0, 1.0)
+            }
+            // c_P <= 0, no mass, or an orphan of `Orphans::Singleton`: its own feature.
+            _ => 0.0,
+        };
+        let (head, tail) = rows.split_at_mut(num_proposals * d);
+        let target = &mut tail[m * d..][..d];
+        let f_hat = &own[m * d..][..d];
+        match rank(m) {
+            Some(r) if alpha >= FULL_BLEND => *slot = r as u32,
+            Some(r) if alpha > 0.0 => {
+                let fbar = &head[r * d..][..d];
+                for ((t, b), o) in target.iter_mut().zip(fbar).zip(f_hat) {
+                    *t = alpha * b + (1.0 - alpha) * o;
+                }
+                normalise(target);
+            }
+            _ => target.copy_from_slice(f_hat),
+        }
+    }
+    Table {
+        rows,
+        column: Some(column),
+    }
+}
+
+fn summarise(p: &PartialSums, desc: &Table, valid: &[u8], t0: Instant) -> Summary {
     let mut masses: Vec<f64> = p
         .mask_mass
         .iter()
@@ -308,9 +505,8 @@ fn summarise(p: &PartialSums, desc: &[f64], valid: &[u8], t0: Instant) -> Summar
         valid: valid.iter().filter(|v| **v == 1).count(),
         nnz: p.weights.nnz(),
         groups: p.groups.num_groups,
-        groups_with_descriptor: desc
-            .chunks_exact(p.dim)
-            .filter(|r| r.iter().any(|x| *x != 0.0))
+        groups_with_descriptor: (0..p.groups.num_groups)
+            .filter(|g| desc.group_row(*g, p.dim).iter().any(|x| *x != 0.0))
             .count(),
         views: p.views.len(),
         masks: p.num_masks(),

@@ -1,5 +1,5 @@
-//! Which descriptor each mask registers: its proposal's (paper), or its own (Dr. Splat-style
-//! baseline).
+//! Which descriptor each mask registers: its proposal's (paper), its own (Dr. Splat-style
+//! baseline), or a blend of the two weighted by how well the mask agrees with its proposal.
 
 use profuse_formats::{Masks, Proposals, NO_PROPOSAL};
 
@@ -58,21 +58,34 @@ pub enum Grouping {
     /// No proposals (the Dr. Splat-style baseline): every mask is its own group and
     /// registers its own feature, not mass-weighted.
     Masks,
+    /// Proposals, blended per mask (a deviation from the paper, against impure proposals):
+    /// mask m of proposal P registers d_m = normalise(α_m f̄_P + (1 − α_m) f̂_m), where
+    /// f̄_P is the paper's descriptor, f̂_m the mask's own normalised feature,
+    /// a_m = cos(f_m, f̄_P), c_P = Σ_{k∈P} μ_k a_k / Σ_{k∈P} μ_k and
+    /// α_m = clamp(a_m / c_P, 0, 1) (0 when c_P <= 0). A mask at least as coherent with its
+    /// proposal as the proposal's average member keeps f̄_P; a mask orthogonal to it keeps
+    /// its own feature. d_m is per mask, so every mask is its own group of W; the proposals
+    /// are kept in [`Groups::mask_proposal`].
+    Blend {
+        /// Masks without a proposal: ignored, or registering their own feature.
+        orphans: Orphans,
+    },
 }
 
 impl Grouping {
-    /// `proposals` or `masks`.
+    /// `proposals`, `masks` or `blend`.
     pub fn name(self) -> &'static str {
         match self {
             Grouping::Proposals { .. } => "proposals",
             Grouping::Masks => "masks",
+            Grouping::Blend { .. } => "blend",
         }
     }
 
     /// The orphan policy's name, `none` for [`Grouping::Masks`] (no mask is an orphan).
     pub fn orphans_name(self) -> &'static str {
         match self {
-            Grouping::Proposals { orphans } => orphans.name(),
+            Grouping::Proposals { orphans } | Grouping::Blend { orphans } => orphans.name(),
             Grouping::Masks => "none",
         }
     }
@@ -87,6 +100,11 @@ pub struct Groups {
     pub mask_group: Vec<u32>,
     /// Number of groups G; every entry of `mask_group` is `< G` or [`NO_GROUP`].
     pub num_groups: usize,
+    /// For [`Grouping::Blend`]: the proposal of every global mask (the ids of the
+    /// proposals file), or [`NO_PROPOSAL`]; empty for the other groupings, whose groups
+    /// already are the proposals or need none. The blend needs it after the pass, when it
+    /// forms each mask's descriptor from its proposal's members.
+    pub mask_proposal: Vec<u32>,
 }
 
 impl Groups {
@@ -113,6 +131,27 @@ impl Groups {
             grouping: Grouping::Proposals { orphans },
             mask_group,
             num_groups,
+            mask_proposal: Vec::new(),
+        })
+    }
+
+    /// [`Grouping::Blend`]: every mask is its own group (orphans too with
+    /// [`Orphans::Singleton`]; ignored orphans get [`NO_GROUP`]), and its proposal is kept
+    /// for the blend. Checks the proposals against the masks like
+    /// [`Groups::from_proposals`].
+    pub fn blend(
+        masks: &Masks,
+        proposals: &Proposals,
+        orphans: Orphans,
+        proposals_name: &str,
+    ) -> Result<Groups> {
+        proposals.check_against(masks, proposals_name)?;
+        let mask_proposal = proposals.mask_proposal.to_vec();
+        Ok(Groups {
+            grouping: Grouping::Blend { orphans },
+            mask_group: blend_mask_groups(&mask_proposal, orphans),
+            num_groups: mask_proposal.len(),
+            mask_proposal,
         })
     }
 
@@ -123,16 +162,47 @@ impl Groups {
             grouping: Grouping::Masks,
             mask_group: (0..m as u32).collect(),
             num_groups: m,
+            mask_proposal: Vec::new(),
         }
     }
 
-    /// One entry per mask (`num_masks`), each `< num_groups` or [`NO_GROUP`].
+    /// One entry per mask (`num_masks`), each `< num_groups` or [`NO_GROUP`]; for
+    /// [`Grouping::Blend`] also one proposal per mask, and the groups those imply.
     pub fn check(&self, num_masks: usize) -> Result<(), String> {
         if self.mask_group.len() != num_masks {
             return Err(format!(
                 "{} entries for {num_masks} masks",
                 self.mask_group.len()
             ));
+        }
+        match self.grouping {
+            Grouping::Blend { orphans } => {
+                if self.mask_proposal.len() != num_masks || self.num_groups != num_masks {
+                    return Err(format!(
+                        "{} proposal entries and {} groups for {num_masks} masks (grouping \
+                         `blend` has one of each per mask)",
+                        self.mask_proposal.len(),
+                        self.num_groups
+                    ));
+                }
+                if let Some(m) =
+                    blend_group_mismatch(&self.mask_proposal, &self.mask_group, orphans)
+                {
+                    return Err(format!(
+                        "mask {m} is in group {} but grouping `blend` puts it in its own \
+                         group (or none for an ignored orphan)",
+                        self.mask_group[m]
+                    ));
+                }
+            }
+            _ if !self.mask_proposal.is_empty() => {
+                return Err(format!(
+                    "grouping `{}` keeps no proposals, but {} are given",
+                    self.grouping.name(),
+                    self.mask_proposal.len()
+                ));
+            }
+            _ => {}
         }
         match self
             .mask_group
@@ -151,4 +221,30 @@ impl Groups {
     pub fn assigned_masks(&self) -> usize {
         self.mask_group.iter().filter(|g| **g != NO_GROUP).count()
     }
+}
+
+/// The groups of [`Grouping::Blend`]: mask m is group m, except an ignored orphan (no
+/// group).
+pub(crate) fn blend_mask_groups(mask_proposal: &[u32], orphans: Orphans) -> Vec<u32> {
+    mask_proposal
+        .iter()
+        .enumerate()
+        .map(|(m, p)| {
+            if *p == NO_PROPOSAL && orphans == Orphans::Ignore {
+                NO_GROUP
+            } else {
+                m as u32
+            }
+        })
+        .collect()
+}
+
+/// The first mask whose group is not the one [`blend_mask_groups`] gives it.
+pub(crate) fn blend_group_mismatch(
+    mask_proposal: &[u32],
+    mask_group: &[u32],
+    orphans: Orphans,
+) -> Option<usize> {
+    let expected = blend_mask_groups(mask_proposal, orphans);
+    (0..expected.len().max(mask_group.len())).find(|m| expected.get(*m) != mask_group.get(*m))
 }

@@ -9,7 +9,8 @@
 //!
 //! * mask mass μ(M) = Σ_{p ∈ M} Σ_t ω (eq. mask-mass);
 //! * proposal descriptor f̄_P = normalise(Σ_{M ∈ P} μ(M) f_M) over the member masks of
-//!   every view (eq. proposal-desc);
+//!   every view (eq. proposal-desc) — or, with [`Grouping::Blend`], per mask a blend of
+//!   f̄_P with the mask's own feature (below);
 //! * A\[g\] += ω f̄_{L(p)}, S\[g\] += ω for every pixel whose mask has a proposal and every
 //!   top-K hit (eq. accumulate); f_g = normalise(A / max(S, ε)) (eq. gaussian-feature);
 //!   a Gaussian with S = 0 is invalid (zero row, `valid` 0).
@@ -51,6 +52,19 @@
 //!   by default, as in the paper; [`Orphans::Singleton`] makes each its own proposal.
 //! * **Baseline.** [`Groups::per_mask`] registers every mask's own feature (Dr. Splat
 //!   style, no proposals, no mass weighting), so the paper's claim can be measured.
+//! * **Blend (a switchable deviation from the paper, [`Groups::blend`]).** The paper gives
+//!   every pixel of a proposal f̄_P, so when a proposal wrongly joins two objects the
+//!   minority object's pixels get the majority's descriptor with no way back. The blend
+//!   registers per mask d_m = normalise(α_m f̄_P + (1 − α_m) f̂_m), with
+//!   a_m = cos(f_m, f̄_P), c_P = Σ_{k∈P} μ_k a_k / Σ_{k∈P} μ_k and
+//!   α_m = clamp(a_m / c_P, 0, 1): a mask as coherent with its proposal as the average
+//!   member keeps f̄_P, one with half the typical agreement gets an even mix, one
+//!   orthogonal to it keeps its own feature. The ratio makes it scale-free (in CLIP's
+//!   anisotropic space, where every cosine is ~0.8, α ≈ 1 everywhere). d_m is per mask,
+//!   so W's groups are the masks (the baseline's W size and cost); masks with α = 1 share
+//!   their proposal's descriptor row, so where every mask is that coherent the result has
+//!   the paper's bytes. The masses (hence d_m) are final only after the last view, so the
+//!   blend is formed in [`finish`], and partial files keep the masks' proposals.
 //! * **Views without masks** are not rendered (they cannot contribute).
 //!
 //! # Example

@@ -8,7 +8,7 @@ use profuse_formats::{Container, Dtype, FileWriter, Floats, FormatError, Kind};
 
 use crate::accumulate::{Accumulator, HitCounts, WeightMatrix};
 use crate::error::{FuseError, Result};
-use crate::groups::{Grouping, Groups, Orphans, NO_GROUP};
+use crate::groups::{blend_group_mismatch, Grouping, Groups, Orphans, NO_GROUP};
 
 /// `format` of a partial-sums file.
 pub const PARTIAL_FORMAT: &str = "profuse.fuse_partial";
@@ -43,7 +43,7 @@ pub struct Timings {
 /// | `num_gaussians` | N, the Gaussians of the run |
 /// | `num_views` | V, the views of the cameras/masks |
 /// | `k` | top-K used |
-/// | `grouping` | `proposals` or `masks` (`--no-proposals`) |
+/// | `grouping` | `proposals`, `masks` (`--no-proposals`) or `blend` |
 /// | `orphans` | `ignore`, `singleton`, or `none` for `masks` |
 /// | `num_groups` | G |
 /// | `pixels`, `hits` | counters: grouped mask-grid pixels and their top-K hits |
@@ -53,6 +53,7 @@ pub struct Timings {
 /// |---|---|---|---|
 /// | `views` | U32 | `[S]` | the views summed, ascending, each `< V` |
 /// | `mask_group` | U32 | `[M]` | group of every mask (`< G`) or 4294967295 |
+/// | `mask_proposal` | U32 | `[M]` | only for `blend`: the proposal of every mask, or 4294967295 |
 /// | `mask_features` | F16 or F32 | `[M, D]` | the masks' features, copied |
 /// | `mask_mass` | U64 | `[M, 2]` | μ of every mask over these views, fixed point (low, high 64 bits) |
 /// | `w_offsets` | U64 | `[N + 1]` | row g of W is entries `w_offsets[g] .. w_offsets[g+1]` |
@@ -205,6 +206,11 @@ impl PartialSums {
             )
             .tensor("w_groups", &[e], &self.weights.groups)
             .tensor("w_sums", &[e, 2], &sums);
+        if matches!(self.groups.grouping, Grouping::Blend { .. }) {
+            // The blend forms each mask's descriptor from its proposal's members, which
+            // `finish` after a merge must know without the proposals file.
+            w.tensor("mask_proposal", &[m], &self.groups.mask_proposal);
+        }
         match &self.mask_features {
             Floats::F16(b) => w.tensor("mask_features", &[m, self.dim], b),
             Floats::F32(b) => w.tensor("mask_features", &[m, self.dim], b),
@@ -305,6 +311,13 @@ fn check_same(first: &PartialSums, p: &PartialSums, name: &str) -> Result<()> {
         return differ(
             "mask_group",
             "one grouping".into(),
+            "a different one".into(),
+        );
+    }
+    if first.groups.mask_proposal != p.groups.mask_proposal {
+        return differ(
+            "mask_proposal",
+            "one set of proposals".into(),
             "a different one".into(),
         );
     }
@@ -442,8 +455,12 @@ impl PartialReader<'_> {
                 orphans: Orphans::parse(o)
                     .ok_or_else(|| self.meta_err("orphans", "`ignore` or `singleton`"))?,
             },
+            ("blend", o) => Grouping::Blend {
+                orphans: Orphans::parse(o)
+                    .ok_or_else(|| self.meta_err("orphans", "`ignore` or `singleton`"))?,
+            },
             ("masks", _) => return Err(self.meta_err("orphans", "`none` for grouping `masks`")),
-            _ => return Err(self.meta_err("grouping", "`proposals` or `masks`")),
+            _ => return Err(self.meta_err("grouping", "`proposals`, `masks` or `blend`")),
         };
         let counts = HitCounts {
             pixels: self.meta_usize("pixels")? as u64,
@@ -512,6 +529,39 @@ impl PartialReader<'_> {
                 "grouping `masks` puts mask i in group i".into(),
             ));
         }
+        let mask_proposal = match grouping {
+            Grouping::Blend { orphans } => {
+                let proposals = self.tensor::<u32>("mask_proposal", &[m])?.to_vec();
+                if num_groups != m {
+                    return Err(self.meta_err(
+                        "num_groups",
+                        &format!("{m} (grouping `blend` has one group per mask)"),
+                    ));
+                }
+                if let Some(i) = blend_group_mismatch(&proposals, &mask_group, orphans) {
+                    return Err(self.invalid(
+                        "mask_group",
+                        format!(
+                            "mask {i}: grouping `blend` puts mask i in group i, or none when \
+                             it has no proposal and orphans are ignored (`mask_proposal`)"
+                        ),
+                    ));
+                }
+                proposals
+            }
+            _ => {
+                if self.c.tensors().contains_key("mask_proposal") {
+                    return Err(self.invalid(
+                        "mask_proposal",
+                        format!(
+                            "present only for grouping `blend`, not `{}`",
+                            grouping.name()
+                        ),
+                    ));
+                }
+                Vec::new()
+            }
+        };
         for (i, x) in mask_features.to_f32_vec().iter().enumerate() {
             if !x.is_finite() {
                 return Err(FormatError::NonFinite {
@@ -569,6 +619,7 @@ impl PartialReader<'_> {
                 grouping,
                 mask_group: mask_group.to_vec(),
                 num_groups,
+                mask_proposal,
             },
             mask_features,
             dim,

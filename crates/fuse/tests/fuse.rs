@@ -10,8 +10,8 @@ use profuse_formats::{
     Cameras, Container, FileKind, FileWriter, Floats, Gaussians, Kind, Labels, Masks, Proposals,
 };
 use profuse_fuse::{
-    accumulate, dequantise, finish, fuse, merge, quantise, FuseError, FuseOptions, Groups, Orphans,
-    PartialSums, Precision, Scene, NO_GROUP,
+    accumulate, dequantise, finish, fuse, merge, quantise, registered_mask_descriptors, FuseError,
+    FuseOptions, Grouping, Groups, Orphans, PartialSums, Precision, Scene, NO_GROUP,
 };
 use splat_raster::{Rasterizer, RenderOptions, ViewCamera, ViewRender, NO_GAUSSIAN};
 
@@ -28,10 +28,16 @@ struct Fixture {
 
 /// A tiny synth scene (4 views 64x48, D = 64) with ground-truth Gaussians.
 fn tiny(seed: u64, gaussians: usize) -> Fixture {
+    tiny_with(seed, gaussians, |_| {})
+}
+
+/// [`tiny`] with a change to the synth configuration.
+fn tiny_with(seed: u64, gaussians: usize, change: impl FnOnce(&mut synth::Config)) -> Fixture {
     let dir = tempfile::tempdir().unwrap();
     let mut config = synth::Config::preset(synth::Preset::Tiny, seed);
     config.gaussians = gaussians;
     config.write_matches = false;
+    change(&mut config);
     synth::generate(&config, dir.path()).unwrap();
     let path = dir.path().to_path_buf();
     Fixture {
@@ -80,6 +86,11 @@ impl Fixture {
         Groups::from_proposals(&self.masks, &self.proposals(min_members), orphans, "p").unwrap()
     }
 
+    /// The blend over the proposals of [`Fixture::proposals_without_first`].
+    fn blend_groups(&self, orphans: Orphans) -> Groups {
+        Groups::blend(&self.masks, &self.proposals_without_first(), orphans, "p").unwrap()
+    }
+
     fn scene(&self) -> Scene<'_> {
         Scene::new(&self.gaussians, &self.cameras, &self.masks)
     }
@@ -101,12 +112,17 @@ enum RefGroups {
     Pooled(Vec<Option<usize>>),
     /// Every mask registers its own feature.
     Own,
+    /// Per mask its proposal (or none), blended with the mask's own feature by
+    /// α = clamp(a_m / c_P, 0, 1); orphans register their own feature when the flag is set.
+    Blend(Vec<Option<usize>>, bool),
 }
 
 struct Reference {
     features: Vec<Option<Vec<f64>>>,
     weight_sum: Vec<f64>,
     mass: Vec<f64>,
+    /// The descriptor every mask's pixels register (None: registers nothing).
+    mask_desc: Vec<Option<Vec<f64>>>,
 }
 
 /// The camera of a view at the mask grid, built from the cameras' rows directly.
@@ -179,6 +195,19 @@ fn reference(
             v.iter_mut().for_each(|x| *x /= n);
         }
     };
+    let pools = |of: &[Option<usize>]| {
+        let p_count = of.iter().flatten().max().map_or(0, |p| p + 1);
+        let mut pooled = vec![vec![0.0; d]; p_count];
+        for (m, p) in of.iter().enumerate() {
+            if let Some(p) = p {
+                for (a, f) in pooled[*p].iter_mut().zip(feature(m)) {
+                    *a += mass[m] * f;
+                }
+            }
+        }
+        pooled.iter_mut().for_each(normalise);
+        pooled
+    };
     // Descriptor of the pixel's mask.
     let desc_of: Vec<Option<Vec<f64>>> = match groups {
         RefGroups::Own => (0..masks.num_masks())
@@ -189,17 +218,48 @@ fn reference(
             })
             .collect(),
         RefGroups::Pooled(of) => {
-            let p_count = of.iter().flatten().max().map_or(0, |p| p + 1);
-            let mut pooled = vec![vec![0.0; d]; p_count];
+            let pooled = pools(of);
+            of.iter().map(|p| p.map(|p| pooled[p].clone())).collect()
+        }
+        RefGroups::Blend(of, singleton) => {
+            let pooled = pools(of);
+            let unit = |m: usize| {
+                let mut f = feature(m);
+                normalise(&mut f);
+                f
+            };
+            let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+            let agreement: Vec<f64> = (0..masks.num_masks())
+                .map(|m| of[m].map_or(0.0, |p| dot(&unit(m), &pooled[p])))
+                .collect();
+            let mut typical = vec![(0.0, 0.0); pooled.len()];
             for (m, p) in of.iter().enumerate() {
                 if let Some(p) = p {
-                    for (a, f) in pooled[*p].iter_mut().zip(feature(m)) {
-                        *a += mass[m] * f;
-                    }
+                    typical[*p].0 += mass[m] * agreement[m];
+                    typical[*p].1 += mass[m];
                 }
             }
-            pooled.iter_mut().for_each(normalise);
-            of.iter().map(|p| p.map(|p| pooled[p].clone())).collect()
+            (0..masks.num_masks())
+                .map(|m| match of[m] {
+                    None => singleton.then(|| unit(m)),
+                    Some(p) => {
+                        let (num, den) = typical[p];
+                        let c = if den > 0.0 { num / den } else { 0.0 };
+                        let alpha = if c > 0.0 {
+                            (agreement[m] / c).clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        };
+                        let mut out: Vec<f64> = pooled[p]
+                            .iter()
+                            .zip(unit(m))
+                            .map(|(b, o)| alpha * b + (1.0 - alpha) * o)
+                            .collect();
+                        normalise(&mut out);
+                        Some(out)
+                    }
+                })
+                .collect()
         }
     };
     let n = g.len();
@@ -232,7 +292,23 @@ fn reference(
         features,
         weight_sum: s,
         mass,
+        mask_desc: desc_of,
     }
+}
+
+/// The reference's view of a blend grouping: every mask's proposal.
+fn blend_ref(groups: &Groups) -> RefGroups {
+    let Grouping::Blend { orphans } = groups.grouping else {
+        panic!("not a blend")
+    };
+    RefGroups::Blend(
+        groups
+            .mask_proposal
+            .iter()
+            .map(|p| (*p != NO_GROUP).then_some(*p as usize))
+            .collect(),
+        orphans == Orphans::Singleton,
+    )
 }
 
 fn pooled_groups(groups: &Groups) -> RefGroups {
@@ -464,6 +540,369 @@ fn gaussians_get_their_own_class() {
 }
 
 // ---------------------------------------------------------------------------------------
+// The blend registration (`Grouping::Blend`).
+
+/// Asserts that the per-mask descriptors equal the reference's to 1e-6 per component (a
+/// reference descriptor of zeros registers nothing, like `None`).
+fn assert_mask_descriptors(got: &[Option<Vec<f32>>], r: &Reference) {
+    assert_eq!(got.len(), r.mask_desc.len());
+    for (m, (got, want)) in got.iter().zip(&r.mask_desc).enumerate() {
+        let want = want.as_ref().filter(|w| w.iter().any(|x| *x != 0.0));
+        match (got, want) {
+            (None, None) => {}
+            (Some(g), Some(w)) => {
+                for (j, (a, b)) in g.iter().zip(w).enumerate() {
+                    assert!(
+                        (f64::from(*a) - b).abs() < 1e-6,
+                        "mask {m} component {j}: {a} vs {b}"
+                    );
+                }
+            }
+            _ => panic!("mask {m}: {:?} vs {:?}", got.is_some(), want.is_some()),
+        }
+    }
+}
+
+/// The blend's per-mask descriptors d_m and the per-Gaussian features equal a
+/// brute-force reference (the literal formula on the reference's masses), with orphans
+/// ignored and, at K = 4, registering their own features.
+#[test]
+fn blend_matches_the_brute_force_reference() {
+    let fx = tiny(3, 9000);
+    for (orphans, k) in [(Orphans::Ignore, 10), (Orphans::Singleton, 4)] {
+        let groups = fx.blend_groups(orphans);
+        assert_eq!(groups.num_groups, fx.masks.num_masks());
+        let opts = FuseOptions { k, ..f32_opts() };
+        let reg = fuse(&fx.scene(), &groups, &opts).unwrap();
+        let r = reference(
+            &fx.gaussians,
+            &fx.cameras,
+            &fx.masks,
+            &blend_ref(&groups),
+            k,
+        );
+        assert_matches(&reg, &r);
+        let partial = accumulate(&fx.scene(), &groups, k, 0..4, &mut |_| {}).unwrap();
+        assert_mask_descriptors(&registered_mask_descriptors(&partial), &r);
+        assert_eq!(reg.features.extra["grouping"], "blend");
+        assert_eq!(reg.features.extra["orphans"], orphans.name());
+        // The blend is not trivial here: some masks keep their proposal's descriptor,
+        // others get a mix.
+        let paper =
+            Groups::from_proposals(&fx.masks, &fx.proposals_without_first(), orphans, "p").unwrap();
+        let pooled = registered_mask_descriptors(
+            &accumulate(&fx.scene(), &paper, k, 0..4, &mut |_| {}).unwrap(),
+        );
+        let blended = registered_mask_descriptors(&partial);
+        let in_proposal = |m: &usize| groups.mask_proposal[*m] != NO_GROUP;
+        let same = (0..pooled.len())
+            .filter(in_proposal)
+            .filter(|m| pooled[*m] == blended[*m])
+            .count();
+        let members = (0..pooled.len()).filter(in_proposal).count();
+        assert!(same > 0 && same < members, "{same} of {members}");
+    }
+}
+
+/// Replaces the features of `masks` (F32).
+fn with_features(masks: &Masks, features: Vec<f32>) -> Masks {
+    Masks {
+        features: Floats::F32(features.into()),
+        ..masks.clone()
+    }
+}
+
+/// When every member of a proposal has the same feature direction, every mask is as
+/// coherent as its proposal's average member: the blend registers the paper's descriptors,
+/// and the files' tensors have the paper's bytes (W's mask columns add up to the paper's
+/// proposal columns exactly).
+#[test]
+fn coherent_proposals_blend_to_the_paper_bytes() {
+    let fx = tiny(5, 3000);
+    let (d, m_count) = (fx.masks.dim, fx.masks.num_masks());
+    let p = fx.proposals_without_first();
+    // Per proposal its first member's feature, scaled differently per member (the
+    // direction is what counts); orphans keep theirs.
+    let old = fx.masks.features.to_f32_vec();
+    let mut first: std::collections::BTreeMap<u32, usize> = Default::default();
+    let mut features = old.clone();
+    for m in 0..m_count {
+        let id = p.mask_proposal[m];
+        if id == NO_GROUP {
+            continue;
+        }
+        let src = *first.entry(id).or_insert(m);
+        let scale = [1.0, 0.5, 2.0, 0.75][m % 4];
+        for j in 0..d {
+            features[m * d + j] = scale * old[src * d + j];
+        }
+    }
+    let masks = with_features(&fx.masks, features);
+    let scene = Scene::new(&fx.gaussians, &fx.cameras, &masks);
+    for orphans in [Orphans::Ignore, Orphans::Singleton] {
+        let paper = Groups::from_proposals(&masks, &p, orphans, "p").unwrap();
+        let blend = Groups::blend(&masks, &p, orphans, "p").unwrap();
+        let a = fuse(&scene, &paper, &f32_opts()).unwrap();
+        let b = fuse(&scene, &blend, &f32_opts()).unwrap();
+        assert_eq!(a.features.features, b.features.features, "{orphans:?}");
+        assert_eq!(a.features.valid, b.features.valid);
+        assert_eq!(a.features.weight_sum, b.features.weight_sum);
+        assert!(b.summary.nnz > a.summary.nnz, "W's groups are the masks");
+    }
+}
+
+/// A mask whose feature is orthogonal to its proposal's descriptor (a_m = 0) registers
+/// its own feature (the per-mask baseline's descriptor); one pointing away (a_m < 0) too,
+/// exactly.
+#[test]
+fn a_mask_orthogonal_to_its_proposal_keeps_its_own_feature() {
+    let fx = tiny(7, 2000);
+    let (d, m_count) = (fx.masks.dim, fx.masks.num_masks());
+    let groups = Groups::blend(&fx.masks, &fx.proposals(1), Orphans::Ignore, "p").unwrap();
+    let scene = fx.scene();
+    // Masses do not depend on the features: take them from one pass.
+    let mass: Vec<f64> = accumulate(&scene, &groups, 10, 0..4, &mut |_| {})
+        .unwrap()
+        .mask_mass()
+        .iter()
+        .map(|q| dequantise(*q))
+        .collect();
+    // The proposal with the most mass; its heaviest member `m0` is made orthogonal, the
+    // others all get e_0. f̄ ∝ S e_0 + μ_0 (e_1 + x e_0), orthogonal to e_1 + x e_0 when
+    // μ_0 x² + S x + μ_0 = 0.
+    let prop = groups.mask_proposal.clone();
+    let mut by_mass: Vec<usize> = (0..m_count).filter(|m| prop[*m] != NO_GROUP).collect();
+    by_mass.sort_by(|a, b| mass[*b].total_cmp(&mass[*a]));
+    let target = prop[by_mass[0]];
+    let members: Vec<usize> = (0..m_count).filter(|m| prop[*m] == target).collect();
+    let m0 = *members
+        .iter()
+        .filter(|m| mass[**m] > 0.0)
+        .min_by(|a, b| mass[**a].total_cmp(&mass[**b]))
+        .unwrap();
+    let s: f64 = members.iter().filter(|m| **m != m0).map(|m| mass[*m]).sum();
+    let mu = mass[m0];
+    assert!(s > 2.0 * mu, "{s} {mu}");
+    let x = (-s + (s * s - 4.0 * mu * mu).sqrt()) / (2.0 * mu);
+    let mut features = fx.masks.features.to_f32_vec();
+    for m in &members {
+        let row = &mut features[m * d..][..d];
+        row.fill(0.0);
+        if *m == m0 {
+            row[0] = x as f32;
+            row[1] = 1.0;
+        } else {
+            row[0] = 1.0;
+        }
+    }
+    let own = |features: &[f32], m: usize| -> Vec<f32> {
+        let row: Vec<f64> = features[m * d..][..d]
+            .iter()
+            .map(|v| f64::from(*v))
+            .collect();
+        let n = row.iter().map(|v| v * v).sum::<f64>().sqrt();
+        row.iter().map(|v| (v / n) as f32).collect()
+    };
+    let masks = with_features(&fx.masks, features.clone());
+    let scene = Scene::new(&fx.gaussians, &fx.cameras, &masks);
+    let partial = accumulate(&scene, &groups, 10, 0..4, &mut |_| {}).unwrap();
+    let got = registered_mask_descriptors(&partial)[m0].clone().unwrap();
+    let want = own(&features, m0);
+    assert!(
+        got.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-6),
+        "{got:?} vs {want:?}"
+    );
+    // The other members are more coherent than average: they keep f̄_P.
+    let desc = profuse_fuse::group_descriptors(&partial);
+    let paper = Groups::from_proposals(&masks, &fx.proposals(1), Orphans::Ignore, "p").unwrap();
+    let paper_desc =
+        registered_mask_descriptors(&accumulate(&scene, &paper, 10, 0..4, &mut |_| {}).unwrap());
+    let other = members
+        .iter()
+        .find(|m| **m != m0 && mass[**m] > 0.0)
+        .unwrap();
+    assert_eq!(
+        registered_mask_descriptors(&partial)[*other],
+        paper_desc[*other]
+    );
+    assert_eq!(desc.len(), m_count * d);
+
+    // Pointing away from the proposal: α = 0, exactly its own normalised feature.
+    features[m0 * d] = -1.0;
+    features[m0 * d + 1] = 0.25;
+    let masks = with_features(&fx.masks, features.clone());
+    let scene = Scene::new(&fx.gaussians, &fx.cameras, &masks);
+    let partial = accumulate(&scene, &groups, 10, 0..4, &mut |_| {}).unwrap();
+    let baseline = accumulate(&scene, &Groups::per_mask(&masks), 10, 0..4, &mut |_| {}).unwrap();
+    assert_eq!(
+        registered_mask_descriptors(&partial)[m0],
+        registered_mask_descriptors(&baseline)[m0]
+    );
+}
+
+/// Dense proposals from per-mask ids (sizes and view counts recomputed; unused ids
+/// dropped, order kept).
+fn proposals_from_ids(masks: &Masks, ids: &[u32], like: &Proposals) -> Proposals {
+    let mut used: Vec<u32> = ids.iter().copied().filter(|i| *i != NO_GROUP).collect();
+    used.sort_unstable();
+    used.dedup();
+    let dense: Vec<u32> = ids
+        .iter()
+        .map(|i| match used.binary_search(i) {
+            Ok(r) => r as u32,
+            Err(_) => NO_GROUP,
+        })
+        .collect();
+    let mut sizes = vec![0u32; used.len()];
+    let mut views: Vec<Vec<usize>> = vec![Vec::new(); used.len()];
+    for (m, p) in dense.iter().enumerate() {
+        if *p != NO_GROUP {
+            sizes[*p as usize] += 1;
+            views[*p as usize].push(masks.view_of(m));
+        }
+    }
+    Proposals {
+        mask_proposal: dense.into(),
+        proposal_size: sizes.into(),
+        proposal_views: views
+            .into_iter()
+            .map(|mut v| {
+                v.dedup();
+                v.len() as u32
+            })
+            .collect::<Vec<_>>()
+            .into(),
+        ..like.clone()
+    }
+}
+
+/// An impure proposal: the masks of object B (a minority of the mass) wrongly joined to
+/// the proposal of object A. The paper's rule gives B's pixels A's class; the blend keeps
+/// B's own class, for its masks and for B's Gaussians. The masks' features are coherent
+/// (noisy, but no mask merged across objects or pulled toward another class), which is
+/// what lets the blend tell B's masks from A's.
+#[test]
+fn an_impure_proposal_does_not_poison_its_minority_under_blend() {
+    let fx = tiny_with(14, 3000, |c| {
+        c.faults.p_merge = 0.0;
+        c.faults.p_wrong_class = 0.0;
+    });
+    let d = fx.masks.dim;
+    let json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(fx.path.join("gt/mask_objects.json")).unwrap(),
+    )
+    .unwrap();
+    let class_of_mask: Vec<Option<i64>> = json["masks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["class_id"].as_i64())
+        .collect();
+    let p = fx.proposals(1);
+    let groups = Groups::from_proposals(&fx.masks, &p, Orphans::Ignore, "p").unwrap();
+    let mass: Vec<f64> = accumulate(&fx.scene(), &groups, 10, 0..4, &mut |_| {})
+        .unwrap()
+        .mask_mass()
+        .iter()
+        .map(|q| dequantise(*q))
+        .collect();
+    // Per proposal: its mass and its (dominant) class.
+    let count = p.len();
+    let mut prop_mass = vec![0.0; count];
+    let mut prop_class = vec![None; count];
+    for (m, id) in p.mask_proposal.iter().enumerate() {
+        if *id != NO_GROUP {
+            prop_mass[*id as usize] += mass[m];
+            prop_class[*id as usize] = prop_class[*id as usize].or(class_of_mask[m]);
+        }
+    }
+    let unique = |c: Option<i64>| prop_class.iter().filter(|x| **x == c).count() == 1;
+    let a = (0..count)
+        .max_by(|x, y| prop_mass[*x].total_cmp(&prop_mass[*y]))
+        .unwrap();
+    // B: the heaviest proposal of another class that is still a minority (< 40%).
+    let b = (0..count)
+        .filter(|b| *b != a && unique(prop_class[*b]) && prop_class[*b] != prop_class[a])
+        .filter(|b| prop_mass[*b] < 0.4 * (prop_mass[a] + prop_mass[*b]))
+        .max_by(|x, y| prop_mass[*x].total_cmp(&prop_mass[*y]))
+        .unwrap();
+    let share = prop_mass[b] / (prop_mass[a] + prop_mass[b]);
+    assert!(share > 0.1, "B's share of the mass {share}");
+    let (class_a, class_b) = (prop_class[a].unwrap(), prop_class[b].unwrap());
+    let ids: Vec<u32> = p
+        .mask_proposal
+        .iter()
+        .map(|id| if *id == b as u32 { a as u32 } else { *id })
+        .collect();
+    let impure = proposals_from_ids(&fx.masks, &ids, &p);
+    let b_masks: Vec<usize> = (0..ids.len())
+        .filter(|m| p.mask_proposal[*m] == b as u32 && mass[*m] > 0.0)
+        .collect();
+    assert!(b_masks.len() >= 2);
+
+    // Class centroids of the mask features.
+    let centroid = |class: i64| {
+        let mut c = vec![0.0f64; d];
+        for (m, cm) in class_of_mask.iter().enumerate() {
+            if *cm == Some(class) {
+                for (j, x) in c.iter_mut().enumerate() {
+                    *x += f64::from(fx.masks.features.get(m * d + j));
+                }
+            }
+        }
+        let n = c.iter().map(|x| x * x).sum::<f64>().sqrt();
+        c.iter().map(|x| x / n).collect::<Vec<f64>>()
+    };
+    let (ca, cb) = (centroid(class_a), centroid(class_b));
+    let closer_to_b = |f: &[f64]| {
+        let dot = |c: &[f64]| c.iter().zip(f).map(|(x, y)| x * y).sum::<f64>();
+        dot(&cb) > dot(&ca)
+    };
+    let classes = fx.gaussians.class_ids.as_ref().unwrap();
+    let run = |groups: &Groups| {
+        let partial = accumulate(&fx.scene(), groups, 10, 0..4, &mut |_| {}).unwrap();
+        let desc = registered_mask_descriptors(&partial);
+        let masks_b = b_masks
+            .iter()
+            .filter(|m| {
+                let f: Vec<f64> = desc[**m]
+                    .as_ref()
+                    .unwrap()
+                    .iter()
+                    .map(|x| f64::from(*x))
+                    .collect();
+                closer_to_b(&f)
+            })
+            .count();
+        let reg = finish(&partial, Precision::F32);
+        let (mut right, mut total) = (0, 0);
+        for g in 0..fx.gaussians.len() {
+            if reg.features.valid[g] == 1 && i64::from(classes[g]) == class_b {
+                let f: Vec<f64> = (0..d)
+                    .map(|j| f64::from(reg.features.features.get(g * d + j)))
+                    .collect();
+                total += 1;
+                right += usize::from(closer_to_b(&f));
+            }
+        }
+        assert!(total > 20, "{total} Gaussians of B");
+        (masks_b, right as f64 / total as f64)
+    };
+    let paper = Groups::from_proposals(&fx.masks, &impure, Orphans::Ignore, "p").unwrap();
+    let blend = Groups::blend(&fx.masks, &impure, Orphans::Ignore, "p").unwrap();
+    let (paper_masks, paper_gaussians) = run(&paper);
+    let (blend_masks, blend_gaussians) = run(&blend);
+    let n = b_masks.len();
+    assert_eq!(paper_masks, 0, "the paper gives B's masks A's descriptor");
+    assert_eq!(blend_masks, n, "the blend keeps B's masks with B");
+    assert!(
+        paper_gaussians < 0.2 && blend_gaussians > 0.8,
+        "B's Gaussians closer to B: paper {paper_gaussians}, blend {blend_gaussians} \
+         (B's share of the mass {share})"
+    );
+}
+
+// ---------------------------------------------------------------------------------------
 // Sharding, determinism, memory.
 
 fn bytes(reg: &profuse_fuse::Registration, dir: &Path, name: &str) -> Vec<u8> {
@@ -479,6 +918,8 @@ fn sharded_partial_files_merge_to_the_unsharded_bytes() {
     for groups in [
         fx.groups_with_orphans(Orphans::Ignore),
         Groups::per_mask(&fx.masks),
+        fx.blend_groups(Orphans::Ignore),
+        fx.blend_groups(Orphans::Singleton),
     ] {
         let scene = fx.scene();
         let whole = fuse(&scene, &groups, &FuseOptions::default()).unwrap();
@@ -521,19 +962,23 @@ fn whole_counts(scene: &Scene<'_>, groups: &Groups) -> profuse_fuse::HitCounts {
 #[test]
 fn thread_count_does_not_change_the_bytes() {
     let fx = tiny(19, 9000);
-    let groups = fx.groups(1, Orphans::Singleton);
     let dir = tempfile::tempdir().unwrap();
-    let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        let reg = pool.install(|| fuse(&fx.scene(), &groups, &f32_opts()).unwrap());
-        bytes(&reg, dir.path(), &format!("t{threads}.safetensors"))
-    };
-    let one = run(1);
-    assert_eq!(one, run(4));
-    assert_eq!(one, run(3));
+    for groups in [
+        fx.groups(1, Orphans::Singleton),
+        fx.blend_groups(Orphans::Ignore),
+    ] {
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let reg = pool.install(|| fuse(&fx.scene(), &groups, &f32_opts()).unwrap());
+            bytes(&reg, dir.path(), &format!("t{threads}.safetensors"))
+        };
+        let one = run(1);
+        assert_eq!(one, run(4), "{:?}", groups.grouping);
+        assert_eq!(one, run(3), "{:?}", groups.grouping);
+    }
 }
 
 /// Views without a mask pixel are skipped but reported, in order, while the views around
@@ -860,4 +1305,166 @@ fn merge_rejects_overlaps_mismatches_and_corrupt_files() {
     // Another kind of file.
     let err = PartialSums::read(fx.path.join("masks.safetensors")).unwrap_err();
     assert!(err.to_string().contains("profuse.fuse_partial"), "{err}");
+}
+
+/// Blend shards do not merge with shards of another grouping or other proposals, and a
+/// blend partial file whose proposals or groups were tampered with is rejected, naming the
+/// file and the tensor.
+#[test]
+fn blend_partial_files_are_checked() {
+    let fx = tiny(31, 500);
+    let scene = fx.scene();
+    let blend = fx.blend_groups(Orphans::Ignore);
+    let a = accumulate(&scene, &blend, 10, 0..2, &mut |_| {}).unwrap();
+    let names = ["a.st".to_string(), "b.st".to_string()];
+    let paper = accumulate(
+        &scene,
+        &fx.groups_with_orphans(Orphans::Ignore),
+        10,
+        2..4,
+        &mut |_| {},
+    )
+    .unwrap();
+    let err = merge(&[a.clone(), paper], &names).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            FuseError::PartialMismatch {
+                field: "grouping",
+                ..
+            }
+        ),
+        "{err}"
+    );
+    let masks = accumulate(&scene, &Groups::per_mask(&fx.masks), 10, 2..4, &mut |_| {}).unwrap();
+    let err = merge(&[a.clone(), masks], &names).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            FuseError::PartialMismatch {
+                field: "grouping",
+                ..
+            }
+        ),
+        "{err}"
+    );
+    // The same groups (masks), but a mask in another proposal.
+    let mut other = blend.clone();
+    let moved = other
+        .mask_proposal
+        .iter()
+        .position(|p| *p != NO_GROUP)
+        .unwrap();
+    other.mask_proposal[moved] = if other.mask_proposal[moved] == 0 {
+        1
+    } else {
+        0
+    };
+    let b = accumulate(&scene, &other, 10, 2..4, &mut |_| {}).unwrap();
+    let err = merge(&[a.clone(), b], &names).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            FuseError::PartialMismatch {
+                field: "mask_proposal",
+                ..
+            }
+        ),
+        "{err}"
+    );
+    let b = accumulate(
+        &scene,
+        &fx.blend_groups(Orphans::Singleton),
+        10,
+        2..4,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert!(merge(&[a.clone(), b], &names).is_err());
+
+    let dir = tempfile::tempdir().unwrap();
+    let good = dir.path().join("good.safetensors");
+    a.write(&good).unwrap();
+    assert_eq!(PartialSums::read(&good).unwrap().groups(), a.groups());
+    let orphan = blend
+        .mask_proposal
+        .iter()
+        .position(|p| *p == NO_GROUP)
+        .expect("an orphan");
+    // An ignored orphan given a proposal, but still in no group.
+    let path = dir.path().join("proposal.safetensors");
+    rewrite_tensor(&good, &path, "mask_proposal", |bytes| {
+        let mut ids: Vec<u32> = bytemuck::pod_collect_to_vec(bytes);
+        ids[orphan] = 0;
+        bytemuck::cast_slice(&ids).to_vec()
+    });
+    let err = PartialSums::read(&path).unwrap_err();
+    let FuseError::Format(e) = &err else {
+        panic!("{err}")
+    };
+    assert_eq!((e.code(), e.field()), ("invalid", Some("mask_group")));
+    assert!(err.to_string().contains("proposal.safetensors"), "{err}");
+    // The proposals tensor missing.
+    let path = dir.path().join("missing.safetensors");
+    {
+        let c = Container::open(&good).unwrap();
+        let mut w = FileWriter::new(Kind::Features);
+        for (k, v) in c.metadata() {
+            w.meta(k, v.clone());
+        }
+        for (t, info) in c.tensors() {
+            if t != "mask_proposal" {
+                w.raw_tensor(t, info.dtype, &info.shape, c.raw(t).unwrap().to_vec());
+            }
+        }
+        w.commit(&path).unwrap();
+    }
+    let err = PartialSums::read(&path).unwrap_err();
+    assert!(
+        err.to_string().contains("missing.safetensors")
+            && err.to_string().contains("mask_proposal"),
+        "{err}"
+    );
+    // A proposals tensor in a file of another grouping.
+    let paper_file = dir.path().join("paper.safetensors");
+    accumulate(
+        &scene,
+        &fx.groups(1, Orphans::Ignore),
+        10,
+        0..2,
+        &mut |_| {},
+    )
+    .unwrap()
+    .write(&paper_file)
+    .unwrap();
+    let path = dir.path().join("extra.safetensors");
+    {
+        let c = Container::open(&paper_file).unwrap();
+        let mut w = FileWriter::new(Kind::Features);
+        for (k, v) in c.metadata() {
+            w.meta(k, v.clone());
+        }
+        for (t, info) in c.tensors() {
+            w.raw_tensor(t, info.dtype, &info.shape, c.raw(t).unwrap().to_vec());
+        }
+        let m = fx.masks.num_masks();
+        w.raw_tensor(
+            "mask_proposal",
+            profuse_formats::Dtype::U32,
+            &[m],
+            vec![0u8; 4 * m],
+        );
+        w.commit(&path).unwrap();
+    }
+    let err = PartialSums::read(&path).unwrap_err();
+    let FuseError::Format(e) = &err else {
+        panic!("{err}")
+    };
+    assert_eq!((e.code(), e.field()), ("invalid", Some("mask_proposal")));
+    // A grouping built in memory whose groups do not follow its proposals.
+    let mut broken = blend.clone();
+    broken.mask_group[orphan] = orphan as u32;
+    let err = accumulate(&scene, &broken, 10, 0..4, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, FuseError::BadGrouping { .. }), "{err}");
+    assert!(err.to_string().contains(&format!("mask {orphan}")), "{err}");
 }

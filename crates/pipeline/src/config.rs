@@ -282,6 +282,11 @@ pub struct Fuse {
     pub orphans: String,
     /// The Dr. Splat-style baseline: every mask registers its own feature.
     pub no_proposals: bool,
+    /// What a mask's pixels register: `proposals` (paper: its proposal's descriptor) or
+    /// `blend` (its proposal's descriptor blended with its own feature by how well it
+    /// agrees with the proposal, `profuse_fuse::Grouping::Blend`). Ignored with
+    /// `no_proposals`.
+    pub registration: String,
 }
 
 impl Default for Fuse {
@@ -290,7 +295,32 @@ impl Default for Fuse {
             k: profuse_fuse::DEFAULT_K,
             orphans: profuse_fuse::Orphans::default().name().into(),
             no_proposals: false,
+            registration: "proposals".into(),
         }
+    }
+}
+
+impl Fuse {
+    /// The groups of the configured registration over `proposals`.
+    pub fn groups(
+        &self,
+        masks: &profuse_formats::Masks,
+        proposals: &profuse_formats::Proposals,
+        proposals_name: &str,
+    ) -> Result<profuse_fuse::Groups> {
+        let orphans = profuse_fuse::Orphans::parse(&self.orphans)
+            .ok_or_else(|| config_err("fuse.orphans", &self.orphans, "ignore or singleton"))?;
+        let groups = match self.registration.as_str() {
+            "proposals" => {
+                profuse_fuse::Groups::from_proposals(masks, proposals, orphans, proposals_name)
+            }
+            "blend" => profuse_fuse::Groups::blend(masks, proposals, orphans, proposals_name),
+            other => return Err(config_err("fuse.registration", other, "proposals or blend")),
+        };
+        groups.map_err(|e| PipelineError::Stage {
+            stage: "fuse",
+            source: Box::new(e),
+        })
     }
 }
 
@@ -501,6 +531,13 @@ impl Config {
         self.warp_graph.params()?;
         profuse_fuse::Orphans::parse(&self.fuse.orphans)
             .ok_or_else(|| config_err("fuse.orphans", &self.fuse.orphans, "ignore or singleton"))?;
+        if !matches!(self.fuse.registration.as_str(), "proposals" | "blend") {
+            return Err(config_err(
+                "fuse.registration",
+                &self.fuse.registration,
+                "proposals or blend",
+            ));
+        }
         if !matches!(self.query.score.as_str(), "relevancy" | "cosine") {
             return Err(config_err(
                 "query.score",
@@ -610,6 +647,19 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("gs_init.scale"));
+        let c = Config::default()
+            .with_overrides(&["fuse.registration=\"mix\"".into()])
+            .unwrap();
+        assert!(c
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("fuse.registration"));
+        let c = Config::default()
+            .with_overrides(&["fuse.registration=blend".into()])
+            .unwrap();
+        assert_eq!(c.fuse.registration, "blend");
+        c.validate().unwrap();
     }
 
     #[test]

@@ -528,15 +528,9 @@ pub(crate) fn fuse_partial(
         profuse_fuse::Groups::per_mask(&masks)
     } else {
         let proposals = Proposals::read(&p.proposals).map_err(err)?;
-        let orphans = profuse_fuse::Orphans::parse(&config.fuse.orphans)
-            .unwrap_or(profuse_fuse::Orphans::Ignore);
-        profuse_fuse::Groups::from_proposals(
-            &masks,
-            &proposals,
-            orphans,
-            &p.proposals.display().to_string(),
-        )
-        .map_err(stage_err("fuse"))?
+        config
+            .fuse
+            .groups(&masks, &proposals, &p.proposals.display().to_string())?
     };
     let names = profuse_fuse::Names {
         gaussians: p.gaussians.display().to_string(),

@@ -103,8 +103,17 @@ struct RunArgs {
     #[arg(long, required_unless_present = "no_proposals")]
     proposals: Option<PathBuf>,
     /// No proposals: every mask registers its own feature (the Dr. Splat-style baseline).
-    #[arg(long, conflicts_with_all = ["proposals", "orphans"])]
+    #[arg(long, conflicts_with_all = ["proposals", "orphans", "registration"])]
     no_proposals: bool,
+    /// What a mask's pixels register. `proposals` (paper): the proposal's descriptor
+    /// f̄_P = normalise(Σ μ_k f_k over its masks). `blend`: per mask m,
+    /// normalise(α f̄_P + (1 − α) f_m / |f_m|) with α = clamp(a_m / c_P, 0, 1),
+    /// a_m = cos(f_m, f̄_P) and c_P the μ-weighted mean of a_k over the proposal: a mask as
+    /// coherent as the proposal's average member keeps f̄_P, one orthogonal to it keeps
+    /// its own feature, so the minority object of an impure proposal is not overwritten.
+    /// W then has one column per mask (like --no-proposals), which costs memory and time.
+    #[arg(long, value_enum, default_value = "proposals")]
+    registration: RegistrationArg,
     /// The features file to write (profuse.features: descriptors, valid, weight_sum).
     #[arg(long, required_unless_present = "partial_out")]
     out: Option<PathBuf>,
@@ -155,8 +164,36 @@ struct BenchArgs {
     #[arg(long)]
     write: bool,
     /// Register with every mask as its own group (the baseline) instead of proposals.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "registration")]
     no_proposals: bool,
+    /// `proposals` (paper) or `blend` (see `fuse run --help`).
+    #[arg(long, value_enum, default_value = "proposals")]
+    registration: RegistrationArg,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum RegistrationArg {
+    /// Every pixel of a mask registers its proposal's descriptor (paper).
+    Proposals,
+    /// Every mask registers its proposal's descriptor blended with its own feature by how
+    /// well it agrees with the proposal.
+    Blend,
+}
+
+impl RegistrationArg {
+    /// The groups of this registration over `proposals`.
+    fn groups(
+        self,
+        masks: &Masks,
+        proposals: &Proposals,
+        orphans: Orphans,
+        name: &str,
+    ) -> profuse_fuse::Result<Groups> {
+        match self {
+            RegistrationArg::Proposals => Groups::from_proposals(masks, proposals, orphans, name),
+            RegistrationArg::Blend => Groups::blend(masks, proposals, orphans, name),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -253,7 +290,8 @@ fn run_command(a: RunArgs, show: bool) -> Result<Value, BoxError> {
                 OrphansArg::Ignore => Orphans::Ignore,
                 OrphansArg::Singleton => Orphans::Singleton,
             };
-            Groups::from_proposals(&masks, &proposals, orphans, &name(path))?
+            a.registration
+                .groups(&masks, &proposals, orphans, &name(path))?
         }
         _ => Groups::per_mask(&masks),
     };
@@ -531,7 +569,7 @@ fn bench(a: BenchArgs, show: bool) -> Result<Value, BoxError> {
             &masks,
             1,
         )?;
-        Groups::from_proposals(
+        a.registration.groups(
             &masks,
             &proposals,
             Orphans::Ignore,
