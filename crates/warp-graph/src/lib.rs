@@ -8,6 +8,14 @@
 //! bounding-box IoU reaches τ_box. Connected components of the graph over all views are the
 //! proposals, after dropping components with fewer than `s_min` members or `v_min` views.
 //!
+//! With cameras and Gaussians the default grouping ([`Grouping::Auto`]) is instead the
+//! **view consensus** of MaskClustering over the Gaussians (module `consensus`, README
+//! "View-consensus grouping"): connected components are single linkage, so one mask that
+//! merged two objects chains them, while the consensus asks how all the views that see two
+//! clusters segment them, and drops masks that most views split. The link rules below stay
+//! available as [`Grouping::Links`] (the paper's plain components with
+//! `same_view_support = None`).
+//!
 //! # Definitions (normative for this crate)
 //!
 //! For the warp of pair row (i, j) on its `W x H` grid over view i:
