@@ -1040,17 +1040,22 @@ fn proposals_record_the_parameters_and_round_trip_through_a_file() {
 // ---------------------------------------------------------------------------------------
 // The synthetic demo scene: clustering scores against the true objects.
 
+/// A generated demo scene's masks, matches, cameras, exact Gaussians and mask truth.
+fn demo_files(dir: &std::path::Path) -> (Masks, Matches, Cameras, Gaussians, Vec<u32>) {
+    (
+        Masks::read(dir.join("masks.safetensors")).unwrap(),
+        Matches::read(dir.join("matches.safetensors")).unwrap(),
+        Cameras::read(dir.join("cameras.safetensors")).unwrap(),
+        Gaussians::read(dir.join("gt/gaussians.safetensors")).unwrap(),
+        profuse_metrics::cluster::read_mask_objects(dir.join("gt/mask_objects.json")).unwrap(),
+    )
+}
+
 #[test]
 fn demo_scene_proposals_score_against_the_true_objects() {
     let dir = tempfile::tempdir().unwrap();
     synth::generate(&synth::Config::preset(synth::Preset::Demo, 0), dir.path()).unwrap();
-    let m = Masks::read(dir.path().join("masks.safetensors")).unwrap();
-    let t = Matches::read(dir.path().join("matches.safetensors")).unwrap();
-    let cams = Cameras::read(dir.path().join("cameras.safetensors")).unwrap();
-    let g = Gaussians::read(dir.path().join("gt/gaussians.safetensors")).unwrap();
-    let truth =
-        profuse_metrics::cluster::read_mask_objects(dir.path().join("gt/mask_objects.json"))
-            .unwrap();
+    let (m, t, cams, g, truth) = demo_files(dir.path());
     let inputs = Inputs::new(&m, &t).with_cameras(&cams).with_gaussians(&g);
     let score = |p: &Params| {
         let o = build_proposals(inputs, p).unwrap();
@@ -1131,13 +1136,7 @@ fn consensus_grouping_stays_pure_under_harsh_segmentation() {
     cfg.faults.p_split = 0.35;
     cfg.faults.p_merge = 0.3;
     synth::generate(&cfg, dir.path()).unwrap();
-    let m = Masks::read(dir.path().join("masks.safetensors")).unwrap();
-    let t = Matches::read(dir.path().join("matches.safetensors")).unwrap();
-    let cams = Cameras::read(dir.path().join("cameras.safetensors")).unwrap();
-    let g = Gaussians::read(dir.path().join("gt/gaussians.safetensors")).unwrap();
-    let truth =
-        profuse_metrics::cluster::read_mask_objects(dir.path().join("gt/mask_objects.json"))
-            .unwrap();
+    let (m, t, cams, g, truth) = demo_files(dir.path());
     let inputs = Inputs::new(&m, &t).with_cameras(&cams).with_gaussians(&g);
     let score = |p: &Params| {
         let o = build_proposals(inputs, p).unwrap();
