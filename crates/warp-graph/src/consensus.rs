@@ -253,6 +253,36 @@ struct Node {
     containers: Vec<u32>,
 }
 
+impl Node {
+    /// Takes `other`'s masks, visible views and containers (the union of two clusters);
+    /// [`Node::tidy`] restores the sorted sets.
+    fn absorb(&mut self, other: Node) {
+        self.masks.extend(other.masks);
+        self.visible
+            .iter_mut()
+            .zip(&other.visible)
+            .for_each(|(p, q)| *p |= q);
+        self.containers.extend(other.containers);
+    }
+
+    fn tidy(&mut self) {
+        self.masks.sort_unstable();
+        self.containers.sort_unstable();
+        self.containers.dedup();
+    }
+
+    /// Views that contain both clusters (observers).
+    fn observers(&self, other: &Node) -> u32 {
+        popcount_and(&self.visible, &other.visible)
+    }
+
+    /// Whether the views containing both put them in one mask often enough: supporters >=
+    /// `consensus` · `observers` (module docs, step 5).
+    fn supported(&self, other: &Node, observers: u32, consensus: f64) -> bool {
+        f64::from(common(&self.containers, &other.containers)) >= consensus * f64::from(observers)
+    }
+}
+
 fn popcount_and(a: &[u64], b: &[u64]) -> u32 {
     a.iter().zip(b).map(|(x, y)| (x & y).count_ones()).sum()
 }
@@ -361,10 +391,8 @@ fn iterate(nodes: Vec<Node>, threshold: u32, consensus: f64, masks: usize) -> (V
                 .into_iter()
                 .filter(|&b| {
                     let nb = &nodes_ref[b as usize];
-                    let observers = popcount_and(&na.visible, &nb.visible);
-                    observers >= threshold.max(1)
-                        && f64::from(common(&na.containers, &nb.containers))
-                            >= consensus * f64::from(observers)
+                    let observers = na.observers(nb);
+                    observers >= threshold.max(1) && na.supported(nb, observers, consensus)
                 })
                 .map(|b| (a as u32, b))
                 .collect::<Vec<_>>()
@@ -386,19 +414,9 @@ fn iterate(nodes: Vec<Node>, threshold: u32, consensus: f64, masks: usize) -> (V
             merged.push(n);
             continue;
         }
-        let m = &mut merged[slot[r] as usize];
-        m.masks.extend(n.masks);
-        m.visible
-            .iter_mut()
-            .zip(&n.visible)
-            .for_each(|(p, q)| *p |= q);
-        m.containers.extend(n.containers);
+        merged[slot[r] as usize].absorb(n);
     }
-    for m in &mut merged {
-        m.masks.sort_unstable();
-        m.containers.sort_unstable();
-        m.containers.dedup();
-    }
+    merged.iter_mut().for_each(Node::tidy);
     (merged, edges.len() as u64)
 }
 
@@ -439,9 +457,8 @@ fn merge_along_links(
         let (Some(na), Some(nb)) = (&merged[a], &merged[b]) else {
             continue;
         };
-        let observers = popcount_and(&na.visible, &nb.visible);
-        let supporters = common(&na.containers, &nb.containers);
-        if observers > 0 && f64::from(supporters) < consensus * f64::from(observers) {
+        let observers = na.observers(nb);
+        if observers > 0 && !na.supported(nb, observers, consensus) {
             continue;
         }
         uf.union(a as u32, b as u32);
@@ -449,15 +466,8 @@ fn merge_along_links(
         let from = if root == a { b } else { a };
         if let Some(n) = merged[from].take() {
             if let Some(r) = merged[root].as_mut() {
-                r.masks.extend(n.masks);
-                r.masks.sort_unstable();
-                r.visible
-                    .iter_mut()
-                    .zip(&n.visible)
-                    .for_each(|(p, q)| *p |= q);
-                r.containers.extend(n.containers);
-                r.containers.sort_unstable();
-                r.containers.dedup();
+                r.absorb(n);
+                r.tidy();
             }
         }
         merges += 1;
@@ -496,17 +506,15 @@ pub(crate) fn cluster(
     // Withdraw the votes of under-segmented masks.
     let under: Vec<bool> = votes.iter().map(|v| v.undersegmented).collect();
     for v in &mut votes {
-        let mut k = 0;
-        while k < v.containers.len() {
-            let c = v.containers[k] as usize;
-            if under[c] {
-                let view = view_of[c];
-                v.visible[view / 64] &= !(1 << (view % 64));
-                v.containers.remove(k);
-            } else {
-                k += 1;
+        let visible = &mut v.visible;
+        v.containers.retain(|&c| {
+            let withdrawn = under[c as usize];
+            if withdrawn {
+                let view = view_of[c as usize];
+                visible[view / 64] &= !(1 << (view % 64));
             }
-        }
+            !withdrawn
+        });
     }
     let mut nodes: Vec<Node> = votes
         .into_iter()
@@ -518,14 +526,15 @@ pub(crate) fn cluster(
             containers: v.containers,
         })
         .collect();
+    let thresholds = observer_thresholds(&nodes, views);
     let mut stats = ConsensusStats {
         points: points as u64,
         undersegmented: under.iter().filter(|u| **u).count() as u64,
-        thresholds: observer_thresholds(&nodes, views),
+        thresholds: thresholds.clone(),
         edges: Vec::new(),
         link_merges: 0,
     };
-    for &t in &stats.thresholds.clone() {
+    for t in thresholds {
         let (next, e) = iterate(nodes, t, p.consensus, masks);
         nodes = next;
         stats.edges.push(e);
