@@ -484,10 +484,18 @@ impl<'a> Association<'a> {
         let cp = &self.params.consensus;
         let n = gaussians.len();
         let stride = consensus::point_stride(n, cp.max_points);
-        let raster = Rasterizer::new(gaussians).map_err(|source| WarpGraphError::Raster {
-            context: "preparing the Gaussians for the top-1 renders".into(),
-            source,
-        })?;
+        // The depth test's rasterizer when there is one: the Gaussians are prepared once.
+        let own;
+        let raster = match &self.depth {
+            Some(cache) => cache.raster(),
+            None => {
+                own = Rasterizer::new(gaussians).map_err(|source| WarpGraphError::Raster {
+                    context: "preparing the Gaussians for the top-1 renders".into(),
+                    source,
+                })?;
+                &own
+            }
+        };
         let opts = RenderOptions {
             color: false,
             depth: DepthMode::None,

@@ -207,6 +207,11 @@ impl<'g> DepthCache<'g> {
         }
     }
 
+    /// The rasterizer the depth maps come from (prepared once per run).
+    pub(crate) fn raster(&self) -> &Rasterizer<'g> {
+        &self.raster
+    }
+
     /// View `view`'s depth on the grid: Σωz/Σω where the accumulated alpha reaches
     /// `min_alpha`, else 0 (no evidence).
     pub(crate) fn get(&self, view: usize) -> Result<Arc<Vec<f32>>> {
