@@ -35,16 +35,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
     match command {
         Command::PlyImport { ply, out } => {
             let (mut g, report) = read_inria_ply(&ply)?;
-            if report.clamped_opacity > 0 {
-                let n = report.clamped_opacity;
-                warn(
-                    quiet,
-                    &format!(
-                        "{}: clamped {n} non-finite opacity logits to ±20",
-                        ply.display()
-                    ),
-                );
-            }
+            profuse_tools::scene::warn_clamped(quiet, &ply, &report);
             stamp(&mut g.extra, "ply-import");
             save(&g, "ply-import", &ply, &out, &report, quiet)
         }
