@@ -409,6 +409,7 @@ pub fn read_gt_vector(path: &Path) -> Result<(), GtError> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
