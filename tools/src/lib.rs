@@ -141,6 +141,12 @@ impl profuse_bench::common::Progress for Bars {
             b.finish_and_clear();
         }
     }
+
+    fn note(&self, message: &str) {
+        if self.show {
+            let _ = writeln!(std::io::stderr().lock(), "{message}");
+        }
+    }
 }
 
 /// Sets the size of rayon's global thread pool (`--threads`); `None` keeps rayon's

@@ -7,13 +7,15 @@ use std::time::Instant;
 use crate::BoxError;
 
 /// Where a benchmark reports progress (the tools draw bars on stderr).
-pub trait Progress {
+pub trait Progress: Sync {
     /// A phase of `len` units starts (0: unknown length).
     fn start(&self, phase: &str, len: u64);
     /// `n` more units are done.
     fn inc(&self, n: u64);
     /// The phase is over.
     fn finish(&self);
+    /// A one-line message (what the benchmark does next).
+    fn note(&self, _message: &str) {}
 }
 
 /// No progress output.

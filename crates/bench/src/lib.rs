@@ -13,9 +13,11 @@
 pub mod common;
 pub mod fuse;
 pub mod gs_init;
+pub mod metrics;
 pub mod pq;
 pub mod query;
 pub mod raster;
+pub mod vertex_transfer;
 pub mod warp_graph;
 
 /// Boxed error of a benchmark.

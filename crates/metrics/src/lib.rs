@@ -61,6 +61,7 @@ mod error;
 pub mod lerf;
 pub mod mask;
 pub mod photo;
+pub mod raster_cases;
 pub mod scannet;
 pub mod surface;
 pub mod wrong_class;

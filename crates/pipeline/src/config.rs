@@ -24,7 +24,7 @@ pub struct Config {
     /// query: open-vocabulary selection (paper 3.4, 4.2).
     pub query: Query,
     /// vertex-transfer: mesh-vertex labels (paper 4.3).
-    pub vertex_transfer: VertexTransfer,
+    pub vertex_transfer: vertex_transfer::Params,
 }
 
 /// query parameters.
@@ -55,44 +55,6 @@ impl Default for Query {
             k: profuse_query::DEFAULT_TOP_K,
             prompts: Vec::new(),
             overlay: true,
-        }
-    }
-}
-
-/// vertex-transfer parameters (paper 4.3: K 64, σ 3).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct VertexTransfer {
-    /// Nearest Gaussian centres per vertex.
-    pub k: usize,
-    /// Mahalanobis gate.
-    pub sigma: f32,
-    /// Softmax temperature over class cosines.
-    pub temperature: f32,
-    /// Smallest Gaussian scale used in the covariance (guards degenerate Gaussians).
-    pub min_scale: f32,
-}
-
-impl Default for VertexTransfer {
-    fn default() -> Self {
-        let p = vertex_transfer::Params::default();
-        VertexTransfer {
-            k: p.k,
-            sigma: p.sigma,
-            temperature: p.temperature,
-            min_scale: p.min_scale,
-        }
-    }
-}
-
-impl VertexTransfer {
-    /// The crate's parameters.
-    pub fn params(&self) -> vertex_transfer::Params {
-        vertex_transfer::Params {
-            k: self.k,
-            sigma: self.sigma,
-            temperature: self.temperature,
-            min_scale: self.min_scale,
         }
     }
 }

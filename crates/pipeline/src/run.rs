@@ -478,7 +478,7 @@ pub fn run(
                             env!("CARGO_PKG_VERSION")
                         )),
                     };
-                    let report = vertex_transfer::run_job(&job, &config.vertex_transfer.params())
+                    let report = vertex_transfer::run_job(&job, &config.vertex_transfer)
                         .map_err(stage_err("vertex-transfer"))?;
                     reports.insert(format!("nyu{}", set.name()), to_json(&report));
                 }

@@ -30,16 +30,24 @@ pub const DEFAULT_MIN_SCALE: f32 = 1e-4;
 /// Vertices per parallel task.
 const VERTEX_CHUNK: usize = 512;
 
-/// The transfer's parameters; [`Params::default`] holds the paper's values.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// The transfer's parameters; [`Params::default`] holds the paper's values. As serde, the
+/// pipeline's `[vertex_transfer]` section; with the `clap` feature, the tool's flags.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
+#[serde(default, deny_unknown_fields)]
 pub struct Params {
     /// Shortlist: the K nearest valid Gaussian centres (Euclidean) of a vertex.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DEFAULT_K))]
     pub k: usize,
     /// Gate: a shortlisted Gaussian is a candidate when its Mahalanobis distance d <= σ.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DEFAULT_SIGMA))]
     pub sigma: f32,
-    /// Softmax temperature T of the class logits cos(f, e_c) / T.
+    /// Softmax temperature T of the class logits cos(f, e_c) / T (0.01 = CLIP's own logit
+    /// scale; lower values make every Gaussian vote nearly one-hot).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DEFAULT_TEMPERATURE))]
     pub temperature: f32,
     /// Smallest standard deviation per axis (scene units).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DEFAULT_MIN_SCALE))]
     pub min_scale: f32,
 }
 

@@ -6,20 +6,19 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use clap::{Parser, Subcommand, ValueEnum};
-use indicatif::{ProgressBar, ProgressStyle};
-use profuse_formats::{FileKind, Gaussians, Proposals, VertexLabels};
-use profuse_metrics::cluster::{adjusted_rand_index, proposal_scores, read_mask_objects};
+use profuse_bench::metrics as bench;
+use profuse_formats::{FileKind, Proposals, VertexLabels};
+use profuse_metrics::cluster::{proposal_scores, read_mask_objects};
 use profuse_metrics::lerf::{evaluate_scene, mean_over_scenes, read_label_dir, PredDir};
-use profuse_metrics::mask::{
-    fill_poly_as, fits_int32, rasterize_polygon, reference_vertices, OpenCvFill,
-};
+use profuse_metrics::mask::OpenCvFill;
+use profuse_metrics::raster_cases;
 use profuse_metrics::scannet::{evaluate, ground_truth_labels, ClassSet};
 use profuse_metrics::surface::{scene_extent, summarize, surface_distances_with_progress};
-use profuse_tools::{chatty, peak_rss_mb, run, warn, BoxError};
+use profuse_tools::scene::load_scene;
+use profuse_tools::{chatty, progress_bar, run, warn, BoxError};
 use serde_json::{json, Map, Value};
 
 #[derive(Debug, Parser)]
@@ -44,34 +43,13 @@ struct Cli {
     command: Command,
 }
 
-#[derive(Debug, Clone, Copy, ValueEnum)]
-enum SetArg {
-    /// The 19 classes of OpenGaussian's protocol.
-    #[value(name = "19")]
-    S19,
-    /// The 15-class subset.
-    #[value(name = "15")]
-    S15,
-    /// The 10-class subset.
-    #[value(name = "10")]
-    S10,
-    /// Every NYU40 class (not a paper setting; synth scenes also have ceiling and lamp).
-    #[value(name = "40")]
-    S40,
-    /// The paper's three sets: 19, 15 and 10.
-    #[value(name = "all")]
-    All,
-}
-
-impl SetArg {
-    fn sets(self) -> Vec<ClassSet> {
-        match self {
-            SetArg::S19 => vec![ClassSet::Nyu19],
-            SetArg::S15 => vec![ClassSet::Nyu15],
-            SetArg::S10 => vec![ClassSet::Nyu10],
-            SetArg::S40 => vec![ClassSet::Nyu40],
-            SetArg::All => ClassSet::PAPER.to_vec(),
-        }
+/// `19`, `15`, `10` (the paper's sets), `40` (every NYU40 class; synth scenes also have
+/// ceiling and lamp) or `all` (19, 15 and 10).
+fn class_sets(text: &str) -> Result<Vec<ClassSet>, String> {
+    match (text, ClassSet::parse(text)) {
+        ("all", _) => Ok(ClassSet::PAPER.to_vec()),
+        (_, Some(set)) => Ok(vec![set]),
+        _ => Err(format!("expected 19, 15, 10, 40 or all, got {text:?}")),
     }
 }
 
@@ -99,8 +77,8 @@ enum Command {
         #[arg(long)]
         mesh: PathBuf,
         /// Class set: 19, 15, 10, 40 (every NYU40 class) or all (= 19, 15 and 10).
-        #[arg(long, value_enum, default_value = "all")]
-        set: SetArg,
+        #[arg(long, default_value = "all")]
+        set: String,
     },
     /// LERF-OVS 3D object selection: IoU per (frame, query) of predicted PNG masks
     /// (PRED/<frame_stem>/<query>.png, non-zero = selected; '/' and '\' in a query become
@@ -163,26 +141,7 @@ enum Command {
     /// Throughput of every metric on generated data (no files): ScanNet evaluation, ARI,
     /// polygon rasterisation + IoU, surface distances; prints seconds, rates and peak
     /// memory as one JSON object.
-    Bench {
-        /// Vertices of the ScanNet evaluation.
-        #[arg(long, default_value_t = 1_000_000)]
-        vertices: usize,
-        /// Items of the ARI / cluster scores.
-        #[arg(long, default_value_t = 1_000_000)]
-        items: usize,
-        /// Frame width of the LERF rasterisation.
-        #[arg(long, default_value_t = 986)]
-        width: u32,
-        /// Frame height of the LERF rasterisation.
-        #[arg(long, default_value_t = 728)]
-        height: u32,
-        /// Polygons (of 200 vertices each) rasterised and scored.
-        #[arg(long, default_value_t = 200)]
-        polygons: usize,
-        /// Points of the surface-distance benchmark (in synth's demo room).
-        #[arg(long, default_value_t = 100_000)]
-        points: usize,
-    },
+    Bench(bench::Params),
 }
 
 fn main() -> ExitCode {
@@ -193,7 +152,7 @@ fn main() -> ExitCode {
 
 fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
     match command {
-        Command::Scannet { pred, mesh, set } => scannet(&pred, &mesh, set),
+        Command::Scannet { pred, mesh, set } => scannet(&pred, &mesh, &class_sets(&set)?),
         Command::Lerf {
             labels,
             pred,
@@ -209,14 +168,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             },
         ),
         Command::Surface { gaussians, scene } => surface(&gaussians, &scene, quiet),
-        Command::Bench {
-            vertices,
-            items,
-            width,
-            height,
-            polygons,
-            points,
-        } => bench(vertices, items, (width, height), polygons, points, quiet),
+        Command::Bench(params) => bench::run(&params, chatty(quiet)),
     }
 }
 
@@ -224,7 +176,7 @@ fn path_str(p: &Path) -> String {
     p.display().to_string()
 }
 
-fn scannet(pred: &Path, mesh: &Path, set: SetArg) -> Result<Value, BoxError> {
+fn scannet(pred: &Path, mesh: &Path, classes: &[ClassSet]) -> Result<Value, BoxError> {
     let labels = VertexLabels::read(pred)?;
     let truth = ground_truth_labels(
         &scene_io::scannet::read_labelled_mesh(mesh)?,
@@ -232,7 +184,7 @@ fn scannet(pred: &Path, mesh: &Path, set: SetArg) -> Result<Value, BoxError> {
     )?;
     let pred_labels = labels.labels.to_vec();
     let mut sets = Map::new();
-    for s in set.sets() {
+    for &s in classes {
         let scores = evaluate(&pred_labels, &truth, s)?;
         sets.insert(s.name().to_string(), serde_json::to_value(scores)?);
     }
@@ -252,31 +204,23 @@ fn lerf(
     quiet: bool,
 ) -> Result<Value, BoxError> {
     if labels.len() != preds.len() {
-        return Err(format!(
-            "--labels is given {} times but --pred {} times; give one prediction directory per label directory",
-            labels.len(),
-            preds.len()
-        )
-        .into());
+        let (l, p) = (labels.len(), preds.len());
+        let msg = format!("--labels is given {l} times but --pred {p} times; give one prediction directory per label directory");
+        return Err(msg.into());
     }
-    let bar = progress_bar(chatty(quiet), labels.len() as u64, "scenes");
+    let bar = progress_bar(chatty(quiet), labels.len() as u64, "lerf", "scenes");
     let mut scenes = Vec::with_capacity(labels.len());
     for (l, p) in labels.iter().zip(preds) {
         if !p.is_dir() {
-            warn(
-                quiet,
-                &format!(
-                    "{}: no such prediction directory; every pair scores IoU 0",
-                    p.display()
-                ),
+            let msg = format!(
+                "{}: no such prediction directory; every pair scores IoU 0",
+                p.display()
             );
+            warn(quiet, &msg);
         }
         let scene = read_label_dir(l)?;
-        scenes.push(evaluate_scene(
-            &scene,
-            &PredDir { dir: p.clone() },
-            queries,
-        )?);
+        let pred = PredDir { dir: p.clone() };
+        scenes.push(evaluate_scene(&scene, &pred, queries)?);
         bar.inc(1);
     }
     bar.finish_and_clear();
@@ -302,80 +246,11 @@ fn lerf(
     }))
 }
 
-#[derive(serde::Deserialize)]
-struct RasterCases {
-    cases: Vec<RasterCase>,
-}
-
-#[derive(serde::Deserialize)]
-struct RasterCase {
-    width: u32,
-    height: u32,
-    polygon: Vec<[f64; 2]>,
-}
-
-/// Largest mask side `rasterize` accepts (the label files' limit).
-const MAX_RASTER_SIDE: u32 = profuse_metrics::lerf::MAX_SIDE;
-
 fn rasterize(path: &Path, variant: OpenCvFill) -> Result<Value, BoxError> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| format!("{}: cannot read polygons: {e}", path.display()))?;
-    let input: RasterCases = serde_json::from_str(&text).map_err(|e| {
-        format!(
-            "{}: expected {{\"cases\": [{{\"width\", \"height\", \"polygon\": [[x, y], ...]}}]}}: {e}",
-            path.display()
-        )
-    })?;
-    let mut masks = Vec::with_capacity(input.cases.len());
-    for (i, case) in input.cases.iter().enumerate() {
-        if !(1..=MAX_RASTER_SIDE).contains(&case.width)
-            || !(1..=MAX_RASTER_SIDE).contains(&case.height)
-        {
-            return Err(format!(
-                "{}: cases[{i}]: {}x{}, expected each side in 1..={MAX_RASTER_SIDE}",
-                path.display(),
-                case.width,
-                case.height
-            )
-            .into());
-        }
-        if let Some(k) = case
-            .polygon
-            .iter()
-            .position(|p| !p.iter().all(|&v| fits_int32(v)))
-        {
-            return Err(format!(
-                "{}: cases[{i}].polygon[{k}]: {:?} does not fit int32 after truncation",
-                path.display(),
-                case.polygon[k]
-            )
-            .into());
-        }
-        let m = fill_poly_as(
-            &reference_vertices(&case.polygon),
-            case.width,
-            case.height,
-            variant,
-        );
-        let w = m.width as usize;
-        let mut runs = Vec::new();
-        for (y, row) in m.pixels.chunks(w.max(1)).enumerate() {
-            let mut x = 0;
-            while x < row.len() {
-                if row[x] {
-                    let begin = x;
-                    while x < row.len() && row[x] {
-                        x += 1;
-                    }
-                    runs.push(json!([y, begin, x]));
-                } else {
-                    x += 1;
-                }
-            }
-        }
-        masks.push(json!({"pixels": m.count(), "runs": runs}));
-    }
-    Ok(json!({"cases": masks.len(), "masks": masks}))
+    let report = raster_cases::rasterize_cases(&text, &path_str(path), variant)?;
+    Ok(serde_json::to_value(report)?)
 }
 
 fn proposals_cmd(proposals: &Path, truth: &Path) -> Result<Value, BoxError> {
@@ -396,38 +271,13 @@ fn proposals_cmd(proposals: &Path, truth: &Path) -> Result<Value, BoxError> {
     Ok(v)
 }
 
-fn load_gaussians(path: &Path, quiet: bool) -> Result<Gaussians, BoxError> {
-    if path
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("ply"))
-    {
-        let (g, report) = scene_io::ply::read_inria_ply(path)?;
-        if report.clamped_opacity > 0 {
-            warn(
-                quiet,
-                &format!(
-                    "{}: clamped {} non-finite opacity logits",
-                    path.display(),
-                    report.clamped_opacity
-                ),
-            );
-        }
-        Ok(g)
-    } else {
-        Ok(Gaussians::read(path)?)
-    }
-}
-
 fn surface(gaussians: &Path, scene_path: &Path, quiet: bool) -> Result<Value, BoxError> {
-    let g = load_gaussians(gaussians, quiet)?;
+    let g = load_scene(gaussians, quiet)?;
     let scene = synth::Scene::from_json(scene_path)?;
-    let bar = progress_bar(chatty(quiet), g.len() as u64, "points");
+    let bar = progress_bar(chatty(quiet), g.len() as u64, "surface", "points");
     let start = Instant::now();
-    let d = surface_distances_with_progress(
-        &g.means,
-        |p| scene.distance_to_surface(p),
-        |n| bar.inc(n as u64),
-    );
+    let distance = |p: [f64; 3]| scene.distance_to_surface(p);
+    let d = surface_distances_with_progress(&g.means, distance, |n| bar.inc(n as u64));
     bar.finish_and_clear();
     let summary = summarize(&d, scene_extent(scene.room_size));
     let mut v = serde_json::to_value(&summary)?;
@@ -438,146 +288,4 @@ fn surface(gaussians: &Path, scene_path: &Path, quiet: bool) -> Result<Value, Bo
         obj.insert("seconds".into(), start.elapsed().as_secs_f64().into());
     }
     Ok(v)
-}
-
-fn progress_bar(show: bool, len: u64, unit: &'static str) -> ProgressBar {
-    if !show {
-        return ProgressBar::hidden();
-    }
-    let pb = ProgressBar::new(len);
-    if let Ok(style) =
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} {msg} ({eta})")
-    {
-        pb.set_style(style.progress_chars("=> "));
-    }
-    pb.set_message(unit);
-    pb
-}
-
-/// SplitMix64: dependency-free deterministic data for the benchmark.
-fn splitmix(state: &AtomicU64) -> u64 {
-    let mut z = state
-        .fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed)
-        .wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
-fn bench(
-    vertices: usize,
-    items: usize,
-    (width, height): (u32, u32),
-    polygons: usize,
-    points: usize,
-    quiet: bool,
-) -> Result<Value, BoxError> {
-    let show = chatty(quiet);
-    let rng = AtomicU64::new(42);
-    let mut next = |m: u64| splitmix(&rng) % m.max(1);
-
-    // ScanNet: labels 0..=40, predictions -1..=40, 80 % correct.
-    let truth: Vec<u32> = (0..vertices).map(|_| next(41) as u32).collect();
-    let pred: Vec<i32> = truth
-        .iter()
-        .map(|&t| {
-            if next(5) == 0 {
-                next(42) as i32 - 1
-            } else {
-                t as i32
-            }
-        })
-        .collect();
-    let t = Instant::now();
-    let mut scannet_miou = Vec::new();
-    for set in ClassSet::PAPER {
-        scannet_miou.push(evaluate(&pred, &truth, set)?.miou);
-    }
-    let scannet_s = t.elapsed().as_secs_f64();
-    if show {
-        eprintln!("scannet: {scannet_s:.3} s");
-    }
-
-    // ARI: 1000 truth objects, predictions 90 % right, 5 % unassigned.
-    let objects: Vec<u32> = (0..items).map(|_| next(1000) as u32).collect();
-    let clusters: Vec<u32> = objects
-        .iter()
-        .map(|&o| match next(20) {
-            0 => u32::MAX,
-            1 => next(1000) as u32,
-            _ => o,
-        })
-        .collect();
-    let t = Instant::now();
-    let ari = adjusted_rand_index(&clusters, &objects)?;
-    let ari_s = t.elapsed().as_secs_f64();
-    if show {
-        eprintln!("ari: {ari_s:.3} s");
-    }
-
-    // LERF: star-shaped 200-gon per polygon, rasterised and scored against a shifted copy.
-    let t = Instant::now();
-    let mut iou_sum = 0.0;
-    for k in 0..polygons {
-        let (cx, cy) = (
-            next(u64::from(width)) as f64,
-            next(u64::from(height)) as f64,
-        );
-        let r = 20.0 + next(200) as f64;
-        let star = |dx: f64| -> Vec<[f64; 2]> {
-            (0..200)
-                .map(|i| {
-                    let a = i as f64 * std::f64::consts::TAU / 200.0;
-                    let rr = r * (1.0 + 0.3 * (5.0 * a + k as f64).sin());
-                    [cx + dx + rr * a.cos(), cy + rr * a.sin()]
-                })
-                .collect()
-        };
-        let gt = rasterize_polygon(&star(0.0), width, height);
-        let pr = rasterize_polygon(&star(r * 0.2), width, height);
-        let i = gt.intersection(&pr);
-        let u = gt.count() + pr.count() - i;
-        if u > 0 {
-            iou_sum += i as f64 / u as f64;
-        }
-    }
-    let lerf_s = t.elapsed().as_secs_f64();
-    if show {
-        eprintln!("lerf: {lerf_s:.3} s");
-    }
-
-    // Surface: points in synth's demo room.
-    let scene = synth::Scene::generate(&synth::Config::preset(synth::Preset::Demo, 0))?;
-    let [sx, sy, sz] = scene.room_size;
-    let pts: Vec<[f32; 3]> = (0..points)
-        .map(|_| {
-            let u = |s: f64, m: &mut dyn FnMut(u64) -> u64| {
-                (m(1 << 20) as f64 / f64::from(1 << 20) * s) as f32
-            };
-            [
-                u(sx, &mut next) - (sx / 2.0) as f32,
-                u(sy, &mut next) - (sy / 2.0) as f32,
-                u(sz, &mut next),
-            ]
-        })
-        .collect();
-    let t = Instant::now();
-    let d = surface_distances_with_progress(&pts, |p| scene.distance_to_surface(p), |_| {});
-    let surface_s = t.elapsed().as_secs_f64();
-    let median = summarize(&d, scene_extent(scene.room_size)).median;
-
-    let rate = |n: usize, s: f64| if s > 0.0 { n as f64 / s } else { f64::NAN };
-    Ok(json!({
-        "cores": std::thread::available_parallelism().map_or(1, |n| n.get()),
-        "rayon_num_threads": std::env::var("RAYON_NUM_THREADS").ok(),
-        "scannet": {"vertices": vertices, "sets": 3, "seconds": scannet_s,
-                    "vertices_per_s": rate(vertices * 3, scannet_s), "miou": scannet_miou},
-        "ari": {"items": items, "seconds": ari_s, "items_per_s": rate(items, ari_s), "ari": ari},
-        "lerf": {"width": width, "height": height, "pairs": polygons, "seconds": lerf_s,
-                 "pairs_per_s": rate(polygons, lerf_s),
-                 "mean_iou": if polygons > 0 { iou_sum / polygons as f64 } else { f64::NAN }},
-        "surface": {"points": points, "objects": scene.len(), "seconds": surface_s,
-                    "points_per_s": rate(points, surface_s), "median": median},
-        "peak_rss_mb": peak_rss_mb(),
-    }))
 }
