@@ -13,7 +13,7 @@ has been validated.
 Public API::
 
     read_any(path)              -> the record of whatever kind the file names
-    read_cameras(path) ... read_view_maps(path)
+    read_cameras(path) ... read_fuse_partial(path)
                                 -> a dataclass of numpy arrays + metadata per kind
                                    (one reader per kind of SPEC.md section 4)
     inspect(path)               -> (report dict, FormatError or None), the JSON report of
@@ -83,6 +83,11 @@ __all__ = [
     "read_mesh",
     "read_view_maps",
     "read_topk",
+    "FusePartial",
+    "read_fuse_partial",
+    "fixed_point",
+    "fixed_point_words",
+    "NO_GROUP",
     "read_any",
     "inspect",
     "report_json",
@@ -132,6 +137,7 @@ KINDS = (
     "mesh",
     "view_maps",
     "topk",
+    "fuse_partial",
 )
 
 _U32_MAX = 2**32 - 1
@@ -1999,6 +2005,216 @@ def _topk(c: Container) -> TopK:
         k=k,
     )
 
+
+#: Group of a mask that registers into no group (``fuse_partial.mask_group``).
+NO_GROUP = _U32_MAX
+
+
+@dataclasses.dataclass
+class FusePartial(_Record):
+    """``profuse.fuse_partial``: the exact partial sums of a ``fuse run --views a..b``
+    shard (fixed-point integers in units of 2^-62, stored as (low, high) u64 words)."""
+
+    KIND: ClassVar[str] = "fuse_partial"
+    TENSORS: ClassVar[tuple[str, ...]] = (
+        "views",
+        "mask_group",
+        "mask_proposal",
+        "mask_features",
+        "mask_mass",
+        "w_offsets",
+        "w_groups",
+        "w_sums",
+    )
+
+    path: str
+    metadata: dict[str, str]
+    num_gaussians: int
+    num_views: int
+    k: int
+    #: ``proposals``, ``masks`` or ``blend``.
+    grouping: str
+    #: ``ignore``, ``singleton``, or ``none`` for ``masks``.
+    orphans: str
+    num_groups: int
+    pixels: int
+    hits: int
+    #: U32 [S]: the views summed, ascending.
+    views: np.ndarray
+    #: U32 [M]: group of every mask or 4294967295.
+    mask_group: np.ndarray
+    #: U32 [M] for grouping ``blend``, else None.
+    mask_proposal: np.ndarray | None
+    #: F16 or F32 [M, D].
+    mask_features: np.ndarray
+    #: U64 [M, 2]: fixed-point masses, (low, high) words.
+    mask_mass: np.ndarray
+    #: U64 [N + 1]: CSR row offsets of W.
+    w_offsets: np.ndarray
+    #: U32 [E]: group of every entry.
+    w_groups: np.ndarray
+    #: U64 [E, 2]: fixed-point sums, (low, high) words.
+    w_sums: np.ndarray
+    dim: int
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "gaussians": self.num_gaussians,
+            "views": self.num_views,
+            "summed_views": int(self.views.shape[0]),
+            "masks": int(self.mask_group.shape[0]),
+            "groups": self.num_groups,
+            "entries": int(self.w_groups.shape[0]),
+            "feature_dim": self.dim,
+        }
+
+
+def fixed_point(words: Any) -> list[int]:
+    """(low, high) u64 word pairs ([..., 2]) as Python integers (the u128 sums)."""
+    w = np.asarray(words, dtype=np.uint64).reshape(-1, 2)
+    return [int(lo) | (int(hi) << 64) for lo, hi in w]
+
+
+def fixed_point_words(values: Any) -> np.ndarray:
+    """Non-negative integers below 2^128 as an [n, 2] U64 array of (low, high) words."""
+    out = []
+    for v in values:
+        v = int(v)
+        if not 0 <= v < 2**128:
+            raise ValueError(f"{v} is not a u128")
+        out.append((v & _U64_MAX, v >> 64))
+    return np.array(out, dtype="<u8").reshape(-1, 2)
+
+
+def _parse_grouping(path: str, grouping: str, orphans: str) -> None:
+    """``grouping`` and ``orphans`` name a known combination (Rust ``FuseGrouping::parse``)."""
+    if grouping == "masks":
+        if orphans != "none":
+            raise _meta_error(path, "orphans", "`none` for grouping `masks`")
+    elif grouping in ("proposals", "blend"):
+        if orphans not in ("ignore", "singleton"):
+            raise _meta_error(path, "orphans", "`ignore` or `singleton`")
+    else:
+        raise _meta_error(path, "grouping", "`proposals`, `masks` or `blend`")
+
+
+def _fuse_partial_groups(
+    path: str, grouping: str, orphans: str, num_groups: int, group: np.ndarray, proposal: np.ndarray | None
+) -> None:
+    """Group ids in range and the per-grouping rules (Rust ``check_groups``)."""
+    g64 = group.astype(np.uint64)
+    i = _first((g64 != np.uint64(NO_GROUP)) & (g64 >= np.uint64(num_groups)))
+    if i is not None:
+        raise _out_of_range(
+            path, "mask_group", i, int(group[i]), f"a group < {num_groups} or the reserved {NO_GROUP}"
+        )
+    m = group.shape[0]
+    own = np.arange(m, dtype=np.uint64)
+    if grouping == "blend":
+        if proposal is None:
+            raise _missing_tensor(path, "mask_proposal", "U32 [M] for grouping `blend`")
+        if num_groups != m:
+            raise _meta_error(path, "num_groups", f"{m} (grouping `blend` has one group per mask)")
+        none = (proposal == NO_GROUP) & (orphans == "ignore")
+        expected = np.where(none, np.uint64(NO_GROUP), own)
+        i = _first(g64 != expected)
+        if i is not None:
+            raise _invalid(
+                path,
+                "mask_group",
+                f"mask {i}: grouping `blend` puts mask i in group i, or none when it has no "
+                "proposal and orphans are ignored (`mask_proposal`)",
+            )
+    elif proposal is not None:
+        raise _invalid(path, "mask_proposal", f"present only for grouping `blend`, not `{grouping}`")
+    elif grouping == "masks" and (num_groups != m or bool(np.any(g64 != own))):
+        raise _invalid(path, "mask_group", "grouping `masks` puts mask i in group i (and has G = M)")
+
+
+def _fuse_partial_weights(path: str, num_groups: int, off: np.ndarray, groups: np.ndarray, sums: np.ndarray) -> None:
+    """CSR rows of W: offsets, in-range groups strictly ascending per row, nonzero sums."""
+    e = groups.shape[0]
+    _check_offsets(path, "w_offsets", off, e)
+    starts = off[:-1][off[:-1] < off[1:]].astype(np.int64)
+    row_start = np.zeros(e, dtype=bool)
+    row_start[starts] = True
+    g = groups.astype(np.int64)
+    bad = g >= num_groups
+    bad[1:] |= ~row_start[1:] & (g[1:] <= g[:-1])
+    j = _first(bad)
+    if j is not None:
+        raise _out_of_range(
+            path, "w_groups", j, int(groups[j]), f"groups < {num_groups}, strictly ascending within a row"
+        )
+    i = _first(~sums.reshape(-1, 2).any(axis=1))
+    if i is not None:
+        raise _out_of_range(path, "w_sums", i, 0, "a nonzero sum")
+
+
+def _fuse_partial(c: Container) -> FusePartial:
+    r = _Reader(c)
+    path = c.path
+    integer = "a non-negative integer"
+    n = r.meta_usize("num_gaussians", integer)
+    num_views = r.meta_usize("num_views", integer)
+    k = r.meta_usize("k", integer)
+    grouping = r.meta("grouping", "`proposals`, `masks` or `blend`")
+    orphans = r.meta("orphans", "`ignore`, `singleton` or `none`")
+    _parse_grouping(path, grouping, orphans)
+    num_groups = r.meta_usize("num_groups", integer)
+    pixels = r.meta_usize("pixels", integer)
+    hits = r.meta_usize("hits", integer)
+    if n + 1 > _U64_MAX:
+        raise _meta_error(path, "num_gaussians", "an integer below 2^64 - 1")
+    r.bind("N1", n + 1, "metadata `num_gaussians` + 1")
+    r.req("views", "U32", "S")
+    r.req("mask_group", "U32", "M")
+    has_proposal = r.opt("mask_proposal", "U32", "M")
+    feat_dtype = r.req_either("mask_features", ("F16", "F32"), "M,D")
+    dim = r.dim("D")
+    r.req("mask_mass", "U64", "M,2", lanes=2)
+    r.req("w_offsets", "U64", "N1")
+    r.req("w_groups", "U32", "E")
+    r.req("w_sums", "U64", "E,2", lanes=2)
+    a = r.load()
+    m = a["mask_group"].shape[0]
+    if dim == 0:
+        raise _shape_error(path, "mask_features", [m, 0], "[M, D] with D >= 1")
+    views = a["views"]
+    v64 = views.astype(np.int64)
+    bad = v64 >= num_views
+    bad[1:] |= v64[:-1] >= v64[1:]
+    i = _first(bad)
+    if i is not None:
+        raise _out_of_range(path, "views", i, int(views[i]), f"ascending unique view ids < {num_views}")
+    proposal = a["mask_proposal"] if has_proposal else None
+    _fuse_partial_groups(path, grouping, orphans, num_groups, a["mask_group"], proposal)
+    _check_finite(path, "mask_features", a["mask_features"])
+    del feat_dtype  # either precision is fine; no unit-norm rule
+    _fuse_partial_weights(path, num_groups, a["w_offsets"], a["w_groups"], a["w_sums"])
+    return FusePartial(
+        path=path,
+        metadata=dict(c.metadata),
+        num_gaussians=n,
+        num_views=num_views,
+        k=k,
+        grouping=grouping,
+        orphans=orphans,
+        num_groups=num_groups,
+        pixels=pixels,
+        hits=hits,
+        views=views,
+        mask_group=a["mask_group"],
+        mask_proposal=proposal,
+        mask_features=a["mask_features"],
+        mask_mass=a["mask_mass"],
+        w_offsets=a["w_offsets"],
+        w_groups=a["w_groups"],
+        w_sums=a["w_sums"],
+        dim=dim,
+    )
+
+
 _READERS: dict[str, Callable[[Container], _Record]] = {
     "cameras": _cameras,
     "gaussians": _gaussians,
@@ -2014,6 +2230,7 @@ _READERS: dict[str, Callable[[Container], _Record]] = {
     "mesh": _mesh,
     "view_maps": _view_maps,
     "topk": _topk,
+    "fuse_partial": _fuse_partial,
 }
 
 
@@ -2091,6 +2308,11 @@ def read_view_maps(path: Any) -> ViewMaps:
 def read_topk(path: Any) -> TopK:
     """Reads and fully validates a ``profuse.topk`` file."""
     return _read_kind(path, "topk")
+
+
+def read_fuse_partial(path: Any) -> FusePartial:
+    """Reads and fully validates a ``profuse.fuse_partial`` file."""
+    return _read_kind(path, "fuse_partial")
 
 
 def _read_container(c: Container) -> _Record:
