@@ -90,9 +90,10 @@ fn inspect_fails_invalid_files_with_exit_code_1_and_the_error_on_stderr() {
     assert_eq!(json(&out)["error"]["code"], "io");
 }
 
-/// The Python reader reads exactly what Rust wrote and prints the same inspect JSON.
-/// Needs `numpy` and `safetensors` for python3; skipped with a message when they are
-/// missing, unless PROFUSE_REQUIRE_PYTHON=1 (set by `.ci/run`) makes that a failure.
+/// The Python reader reads exactly what Rust wrote and prints the same inspect JSON, and
+/// Rust reads what the Python writers write. Needs `numpy` and `safetensors` for python3;
+/// skipped with a message when they are missing, unless PROFUSE_REQUIRE_PYTHON=1 (set by
+/// `.ci/run`) makes that a failure.
 #[test]
 fn python_reader_agrees_with_rust_on_every_golden_vector() {
     let probe = Command::new("python3")
@@ -102,23 +103,27 @@ fn python_reader_agrees_with_rust_on_every_golden_vector() {
     if !available {
         assert!(
             std::env::var("PROFUSE_REQUIRE_PYTHON").as_deref() != Ok("1"),
-            "python3 with numpy and safetensors is required (pip install -r formats/python/requirements.txt)"
+            "python3 with numpy and safetensors is required (pip install ./formats/python)"
         );
-        eprintln!("SKIPPED: python3 with numpy + safetensors not found; run `pip install -r formats/python/requirements.txt`");
+        eprintln!("SKIPPED: python3 with numpy + safetensors not found; run `pip install ./formats/python`");
         return;
     }
-    let out = Command::new("python3")
-        .arg("formats/python/test_profuse_formats.py")
-        .env("PROFUSE_RUST_INSPECT", env!("CARGO_BIN_EXE_profuse"))
-        .current_dir(root())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "python tests failed:\n{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
+    // The reader's tests, then the writers' (every kind written by Python is read by
+    // `profuse inspect`, and the golden vectors are rewritten byte for byte).
+    for script in ["test_profuse_formats.py", "test_writers.py"] {
+        let out = Command::new("python3")
+            .arg(format!("formats/python/{script}"))
+            .env("PROFUSE_RUST_INSPECT", env!("CARGO_BIN_EXE_profuse"))
+            .current_dir(root())
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "python tests {script} failed:\n{}\n{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
 }
 
 /// Runs a built tool binary of this package by name (`env!("CARGO_BIN_EXE_<name>")` path

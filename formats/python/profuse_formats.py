@@ -1,5 +1,6 @@
-"""Validated readers for the ProFuse file formats (SPEC.md), the Python mirror of the
-Rust crate ``profuse-formats``.
+"""Validated readers and writers for the ProFuse file formats (SPEC.md): the Python
+package ``profuse-formats`` (``pip install ./formats/python``), mirror of the Rust crate
+``profuse-formats`` and the reference implementation for other languages.
 
 Every ProFuse file is a safetensors container whose ``__metadata__`` names its kind
 (``format = "profuse.<kind>"``) and version (``format_version = "1.x"``). This module
@@ -13,9 +14,16 @@ has been validated.
 Public API::
 
     read_any(path)              -> the record of whatever kind the file names
-    read_cameras(path) ... read_view_maps(path)
+    read_cameras(path) ... read_fuse_partial(path)
                                 -> a dataclass of numpy arrays + metadata per kind
                                    (one reader per kind of SPEC.md section 4)
+    write_cameras(path, ...) ... write_fuse_partial(path, ...)
+                                -> validates numpy arrays + metadata with the reader's
+                                   rules and writes the file atomically, byte for byte
+                                   as the Rust writer does
+    write_file(path, kind, tensors, metadata), write_record(path, record),
+    encode_file(kind, tensors, metadata)
+                                -> the generic writers
     inspect(path)               -> (report dict, FormatError or None), the JSON report of
                                    ``profuse inspect``; ``report_json(report)`` renders it
     open_container(path)        -> the structurally checked header (SPEC.md section 2)
@@ -29,12 +37,13 @@ Command line::
 prints the inspect report (byte-identical to ``profuse inspect FILE``) and exits 0 for
 a valid file, 1 (with ``error: <message>`` on stderr) for an invalid one.
 
-This file depends only on ``numpy`` and ``safetensors`` and is meant to be copied into
-other projects as is.
+This file depends only on ``numpy`` and ``safetensors``; it is installed by
+``pip install ./formats/python`` and may also be copied into other projects as is.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -83,6 +92,30 @@ __all__ = [
     "read_mesh",
     "read_view_maps",
     "read_topk",
+    "FusePartial",
+    "read_fuse_partial",
+    "fixed_point",
+    "fixed_point_words",
+    "NO_GROUP",
+    "write_file",
+    "write_record",
+    "encode_file",
+    "GENERATOR",
+    "write_cameras",
+    "write_gaussians",
+    "write_masks",
+    "write_matches",
+    "write_sparse_matches",
+    "write_proposals",
+    "write_features",
+    "write_pq",
+    "write_prompts",
+    "write_selection",
+    "write_vertex_labels",
+    "write_mesh",
+    "write_view_maps",
+    "write_topk",
+    "write_fuse_partial",
     "read_any",
     "inspect",
     "report_json",
@@ -132,6 +165,7 @@ KINDS = (
     "mesh",
     "view_maps",
     "topk",
+    "fuse_partial",
 )
 
 _U32_MAX = 2**32 - 1
@@ -536,7 +570,12 @@ def open_container(path: Any) -> Container:
 
     Raises :class:`FormatError` with code ``io``, ``truncated`` or ``header``.
     """
-    label = _label(path)
+    return _open_container(path, _label(path))
+
+
+def _open_container(path: Any, label: str) -> Container:
+    """:func:`open_container` naming the file ``label`` in errors (the writers validate
+    their temporary file under the target's name)."""
     try:
         f = open(path, "rb")
     except OSError as e:
@@ -1999,6 +2038,216 @@ def _topk(c: Container) -> TopK:
         k=k,
     )
 
+
+#: Group of a mask that registers into no group (``fuse_partial.mask_group``).
+NO_GROUP = _U32_MAX
+
+
+@dataclasses.dataclass
+class FusePartial(_Record):
+    """``profuse.fuse_partial``: the exact partial sums of a ``fuse run --views a..b``
+    shard (fixed-point integers in units of 2^-62, stored as (low, high) u64 words)."""
+
+    KIND: ClassVar[str] = "fuse_partial"
+    TENSORS: ClassVar[tuple[str, ...]] = (
+        "views",
+        "mask_group",
+        "mask_proposal",
+        "mask_features",
+        "mask_mass",
+        "w_offsets",
+        "w_groups",
+        "w_sums",
+    )
+
+    path: str
+    metadata: dict[str, str]
+    num_gaussians: int
+    num_views: int
+    k: int
+    #: ``proposals``, ``masks`` or ``blend``.
+    grouping: str
+    #: ``ignore``, ``singleton``, or ``none`` for ``masks``.
+    orphans: str
+    num_groups: int
+    pixels: int
+    hits: int
+    #: U32 [S]: the views summed, ascending.
+    views: np.ndarray
+    #: U32 [M]: group of every mask or 4294967295.
+    mask_group: np.ndarray
+    #: U32 [M] for grouping ``blend``, else None.
+    mask_proposal: np.ndarray | None
+    #: F16 or F32 [M, D].
+    mask_features: np.ndarray
+    #: U64 [M, 2]: fixed-point masses, (low, high) words.
+    mask_mass: np.ndarray
+    #: U64 [N + 1]: CSR row offsets of W.
+    w_offsets: np.ndarray
+    #: U32 [E]: group of every entry.
+    w_groups: np.ndarray
+    #: U64 [E, 2]: fixed-point sums, (low, high) words.
+    w_sums: np.ndarray
+    dim: int
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "gaussians": self.num_gaussians,
+            "views": self.num_views,
+            "summed_views": int(self.views.shape[0]),
+            "masks": int(self.mask_group.shape[0]),
+            "groups": self.num_groups,
+            "entries": int(self.w_groups.shape[0]),
+            "feature_dim": self.dim,
+        }
+
+
+def fixed_point(words: Any) -> list[int]:
+    """(low, high) u64 word pairs ([..., 2]) as Python integers (the u128 sums)."""
+    w = np.asarray(words, dtype=np.uint64).reshape(-1, 2)
+    return [int(lo) | (int(hi) << 64) for lo, hi in w]
+
+
+def fixed_point_words(values: Any) -> np.ndarray:
+    """Non-negative integers below 2^128 as an [n, 2] U64 array of (low, high) words."""
+    out = []
+    for v in values:
+        v = int(v)
+        if not 0 <= v < 2**128:
+            raise ValueError(f"{v} is not a u128")
+        out.append((v & _U64_MAX, v >> 64))
+    return np.array(out, dtype="<u8").reshape(-1, 2)
+
+
+def _parse_grouping(path: str, grouping: str, orphans: str) -> None:
+    """``grouping`` and ``orphans`` name a known combination (Rust ``FuseGrouping::parse``)."""
+    if grouping == "masks":
+        if orphans != "none":
+            raise _meta_error(path, "orphans", "`none` for grouping `masks`")
+    elif grouping in ("proposals", "blend"):
+        if orphans not in ("ignore", "singleton"):
+            raise _meta_error(path, "orphans", "`ignore` or `singleton`")
+    else:
+        raise _meta_error(path, "grouping", "`proposals`, `masks` or `blend`")
+
+
+def _fuse_partial_groups(
+    path: str, grouping: str, orphans: str, num_groups: int, group: np.ndarray, proposal: np.ndarray | None
+) -> None:
+    """Group ids in range and the per-grouping rules (Rust ``check_groups``)."""
+    g64 = group.astype(np.uint64)
+    i = _first((g64 != np.uint64(NO_GROUP)) & (g64 >= np.uint64(num_groups)))
+    if i is not None:
+        raise _out_of_range(
+            path, "mask_group", i, int(group[i]), f"a group < {num_groups} or the reserved {NO_GROUP}"
+        )
+    m = group.shape[0]
+    own = np.arange(m, dtype=np.uint64)
+    if grouping == "blend":
+        if proposal is None:
+            raise _missing_tensor(path, "mask_proposal", "U32 [M] for grouping `blend`")
+        if num_groups != m:
+            raise _meta_error(path, "num_groups", f"{m} (grouping `blend` has one group per mask)")
+        none = (proposal == NO_GROUP) & (orphans == "ignore")
+        expected = np.where(none, np.uint64(NO_GROUP), own)
+        i = _first(g64 != expected)
+        if i is not None:
+            raise _invalid(
+                path,
+                "mask_group",
+                f"mask {i}: grouping `blend` puts mask i in group i, or none when it has no "
+                "proposal and orphans are ignored (`mask_proposal`)",
+            )
+    elif proposal is not None:
+        raise _invalid(path, "mask_proposal", f"present only for grouping `blend`, not `{grouping}`")
+    elif grouping == "masks" and (num_groups != m or bool(np.any(g64 != own))):
+        raise _invalid(path, "mask_group", "grouping `masks` puts mask i in group i (and has G = M)")
+
+
+def _fuse_partial_weights(path: str, num_groups: int, off: np.ndarray, groups: np.ndarray, sums: np.ndarray) -> None:
+    """CSR rows of W: offsets, in-range groups strictly ascending per row, nonzero sums."""
+    e = groups.shape[0]
+    _check_offsets(path, "w_offsets", off, e)
+    starts = off[:-1][off[:-1] < off[1:]].astype(np.int64)
+    row_start = np.zeros(e, dtype=bool)
+    row_start[starts] = True
+    g = groups.astype(np.int64)
+    bad = g >= num_groups
+    bad[1:] |= ~row_start[1:] & (g[1:] <= g[:-1])
+    j = _first(bad)
+    if j is not None:
+        raise _out_of_range(
+            path, "w_groups", j, int(groups[j]), f"groups < {num_groups}, strictly ascending within a row"
+        )
+    i = _first(~sums.reshape(-1, 2).any(axis=1))
+    if i is not None:
+        raise _out_of_range(path, "w_sums", i, 0, "a nonzero sum")
+
+
+def _fuse_partial(c: Container) -> FusePartial:
+    r = _Reader(c)
+    path = c.path
+    integer = "a non-negative integer"
+    n = r.meta_usize("num_gaussians", integer)
+    num_views = r.meta_usize("num_views", integer)
+    k = r.meta_usize("k", integer)
+    grouping = r.meta("grouping", "`proposals`, `masks` or `blend`")
+    orphans = r.meta("orphans", "`ignore`, `singleton` or `none`")
+    _parse_grouping(path, grouping, orphans)
+    num_groups = r.meta_usize("num_groups", integer)
+    pixels = r.meta_usize("pixels", integer)
+    hits = r.meta_usize("hits", integer)
+    if n + 1 > _U64_MAX:
+        raise _meta_error(path, "num_gaussians", "an integer below 2^64 - 1")
+    r.bind("N1", n + 1, "metadata `num_gaussians` + 1")
+    r.req("views", "U32", "S")
+    r.req("mask_group", "U32", "M")
+    has_proposal = r.opt("mask_proposal", "U32", "M")
+    feat_dtype = r.req_either("mask_features", ("F16", "F32"), "M,D")
+    dim = r.dim("D")
+    r.req("mask_mass", "U64", "M,2", lanes=2)
+    r.req("w_offsets", "U64", "N1")
+    r.req("w_groups", "U32", "E")
+    r.req("w_sums", "U64", "E,2", lanes=2)
+    a = r.load()
+    m = a["mask_group"].shape[0]
+    if dim == 0:
+        raise _shape_error(path, "mask_features", [m, 0], "[M, D] with D >= 1")
+    views = a["views"]
+    v64 = views.astype(np.int64)
+    bad = v64 >= num_views
+    bad[1:] |= v64[:-1] >= v64[1:]
+    i = _first(bad)
+    if i is not None:
+        raise _out_of_range(path, "views", i, int(views[i]), f"ascending unique view ids < {num_views}")
+    proposal = a["mask_proposal"] if has_proposal else None
+    _fuse_partial_groups(path, grouping, orphans, num_groups, a["mask_group"], proposal)
+    _check_finite(path, "mask_features", a["mask_features"])
+    del feat_dtype  # either precision is fine; no unit-norm rule
+    _fuse_partial_weights(path, num_groups, a["w_offsets"], a["w_groups"], a["w_sums"])
+    return FusePartial(
+        path=path,
+        metadata=dict(c.metadata),
+        num_gaussians=n,
+        num_views=num_views,
+        k=k,
+        grouping=grouping,
+        orphans=orphans,
+        num_groups=num_groups,
+        pixels=pixels,
+        hits=hits,
+        views=views,
+        mask_group=a["mask_group"],
+        mask_proposal=proposal,
+        mask_features=a["mask_features"],
+        mask_mass=a["mask_mass"],
+        w_offsets=a["w_offsets"],
+        w_groups=a["w_groups"],
+        w_sums=a["w_sums"],
+        dim=dim,
+    )
+
+
 _READERS: dict[str, Callable[[Container], _Record]] = {
     "cameras": _cameras,
     "gaussians": _gaussians,
@@ -2014,6 +2263,7 @@ _READERS: dict[str, Callable[[Container], _Record]] = {
     "mesh": _mesh,
     "view_maps": _view_maps,
     "topk": _topk,
+    "fuse_partial": _fuse_partial,
 }
 
 
@@ -2093,6 +2343,11 @@ def read_topk(path: Any) -> TopK:
     return _read_kind(path, "topk")
 
 
+def read_fuse_partial(path: Any) -> FusePartial:
+    """Reads and fully validates a ``profuse.fuse_partial`` file."""
+    return _read_kind(path, "fuse_partial")
+
+
 def _read_container(c: Container) -> _Record:
     """Validates a parsed container as the kind its ``format`` names."""
     found = c.metadata.get("format")
@@ -2107,6 +2362,592 @@ def read_any(path: Any) -> _Record:
     """Reads and fully validates a file of whatever kind its ``__metadata__.format``
     names; returns that kind's record (``Cameras``, ``Gaussians``, ...)."""
     return _read_container(open_container(path))
+
+
+# --------------------------------------------------------------------------------------
+# Writers (SPEC.md 2 "Container" and "Atomic writes")
+# --------------------------------------------------------------------------------------
+
+#: Version of this module (the ``profuse-formats`` Python distribution).
+__version__ = "0.1.0"
+#: Default ``generator`` metadata of files this module writes.
+GENERATOR = f"profuse-formats-python {__version__}"
+
+_CONTAINER_DTYPE = {dt: name for name, dt in _NUMPY_DTYPES.items()}
+_INT_RANGE = {
+    "U8": (0, 2**8 - 1),
+    "U16": (0, 2**16 - 1),
+    "U32": (0, _U32_MAX),
+    "U64": (0, _U64_MAX),
+    "I8": (-(2**7), 2**7 - 1),
+    "I16": (-(2**15), 2**15 - 1),
+    "I32": (-(2**31), 2**31 - 1),
+    "I64": (-(2**63), 2**63 - 1),
+}
+
+
+def _dtype_name(arr: np.ndarray) -> str | None:
+    """The container dtype of a numpy array (either byte order), or None."""
+    try:
+        return _CONTAINER_DTYPE.get(arr.dtype.newbyteorder("<"))
+    except (TypeError, ValueError):  # structured or otherwise odd dtypes
+        return None
+
+
+def _tensor(path: str, name: str, value: Any, allowed: tuple[str, ...]) -> np.ndarray:
+    """``value`` as a little-endian C-ordered array of one of the ``allowed`` dtypes.
+
+    An array already of an allowed dtype keeps it. Otherwise it is converted to the last
+    allowed dtype (F32 for "F16 or F32", U32 for "U16 or U32") when that loses nothing
+    but float precision: integers must fit the target, floats never become integers.
+    """
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError) as e:
+        raise _shape_error(path, name, [], f"a rectangular array ({e})") from None
+    found = _dtype_name(arr)
+    expected = " or ".join(allowed)
+    if found in allowed:
+        target = found
+    else:
+        target = allowed[-1]
+        kind = arr.dtype.kind
+        to_float = target.startswith("F")
+        if kind not in "biuf" or (kind == "f" and not to_float):
+            raise _dtype_error(path, name, found or str(arr.dtype), expected)
+        if not to_float and kind in "iu" and arr.size:
+            lo, hi = _INT_RANGE[target]
+            flat = arr.reshape(-1)
+            i = _first((flat < lo) | (flat > hi))
+            if i is not None:
+                raise _out_of_range(path, name, i, int(flat[i]), f"a value that fits {target}")
+    return np.ascontiguousarray(arr.astype(_NUMPY_DTYPES[target], copy=False))
+
+
+def _meta_int(path: str, key: str, value: Any) -> str:
+    """A non-negative integer as metadata text (decimal, no sign, no leading zeros)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < 0:
+        raise _meta_error(path, key, f"a non-negative integer, got {value!r}")
+    return str(int(value))
+
+
+def _meta_names(path: str, key: str, values: Any) -> str:
+    """A list of strings as the JSON-array metadata text the Rust writer produces."""
+    if isinstance(values, str) or not all(isinstance(v, str) for v in values):
+        raise _meta_error(path, key, "a list of strings")
+    return json.dumps(list(values), ensure_ascii=False, separators=(",", ":"))
+
+
+def _check_text(path: str, what: str, text: str) -> None:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise _header_error(path, f"{what} {text!r} is not valid UTF-8 text") from None
+
+
+def encode_file(kind: str, tensors: dict[str, Any], metadata: dict[str, str]) -> bytes:
+    """Serialises a file exactly as the Rust ``FileWriter`` does (SPEC.md 2), without
+    validating it: compact JSON header with sorted keys, ``format`` and
+    ``format_version`` added when absent, padded with spaces so that ``8 + N`` is a
+    multiple of 8, tensors ordered by decreasing dtype size then name, little-endian
+    C-order data. ``tensors`` values must be numpy arrays of a container dtype."""
+    meta = dict(metadata)
+    meta.setdefault("format", _format_name(kind))
+    meta.setdefault("format_version", "1.0")
+    for key, value in meta.items():
+        if not isinstance(key, str) or not isinstance(value, str):
+            raise _header_error("<memory>", f"metadata {key!r}: keys and values must be strings")
+        _check_text("<memory>", "metadata key", key)
+        _check_text("<memory>", f"metadata `{key}` value", value)
+    arrays = []
+    for name, value in tensors.items():
+        arr = np.asarray(value)
+        dtype = _dtype_name(arr)
+        if dtype is None or name == "__metadata__":
+            raise _dtype_error("<memory>", name, str(arr.dtype), "a container dtype (SPEC.md 2)")
+        _check_text("<memory>", "tensor name", name)
+        arrays.append((name, dtype, arr))
+    arrays.sort(key=lambda t: (-DTYPE_SIZES[t[1]], t[0].encode("utf-8")))
+    header: dict[str, Any] = {"__metadata__": meta}
+    chunks = []
+    offset = 0
+    for name, dtype, arr in arrays:
+        data = np.ascontiguousarray(arr.astype(_NUMPY_DTYPES[dtype], copy=False)).tobytes()
+        header[name] = {"data_offsets": [offset, offset + len(data)], "dtype": dtype, "shape": list(arr.shape)}
+        chunks.append(data)
+        offset += len(data)
+    text = json.dumps(header, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    text += b" " * (-(8 + len(text)) % 8)
+    return struct.pack("<Q", len(text)) + text + b"".join(chunks)
+
+
+def _write_atomically(path: Any, data: bytes, check: Callable[[str], None]) -> None:
+    """Writes ``data`` to a temporary ``.profuse-tmp-*`` file next to ``path``, flushes
+    it to disk, runs ``check`` on it, and renames it over ``path``; on any failure the
+    temporary file is removed and ``path`` is left as it was."""
+    label = _label(path)
+    target = os.fspath(path)
+    directory = os.path.dirname(target) or "."
+    import secrets
+
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    while True:
+        tmp = os.path.join(directory, ".profuse-tmp-" + secrets.token_hex(6))
+        try:
+            fd = os.open(tmp, flags, 0o666)
+            break
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise _io_error(label, "cannot create a temporary file next to it", e) from None
+    try:
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view) :]
+        except OSError as e:
+            raise _io_error(label, "cannot write", e) from None
+        try:
+            os.fsync(fd)
+        except OSError as e:
+            raise _io_error(label, "cannot flush", e) from None
+        os.close(fd)
+        fd = -1
+        check(tmp)
+        try:
+            os.replace(tmp, target)
+        except OSError as e:
+            raise _io_error(label, "cannot rename into place", e) from None
+    except BaseException:
+        if fd >= 0:
+            os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def write_file(
+    path: Any,
+    kind: str,
+    tensors: dict[str, Any],
+    metadata: dict[str, str] | None = None,
+    *,
+    generator: str | None = GENERATOR,
+) -> None:
+    """Writes a file of ``kind`` atomically after validating it with this module's
+    reader (every rule of SPEC.md: the same errors, naming ``path``, as reading it back
+    would raise). ``tensors`` maps names to numpy arrays of container dtypes;
+    ``metadata`` gives the kind-specific and informational keys (``format`` and
+    ``format_version`` are added). ``generator`` is stored unless ``metadata`` has one
+    or it is None. Nothing is written when validation fails."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown kind {kind!r}; one of {', '.join(KINDS)}")
+    label = _label(path)
+    meta = dict(metadata or {})
+    if generator is not None:
+        meta.setdefault("generator", generator)
+    data = encode_file(kind, tensors, meta)
+
+    def check(tmp: str) -> None:
+        c = _open_container(tmp, label)
+        _check_kind(c, kind)
+        _READERS[kind](c)
+
+    _write_atomically(path, data, check)
+
+
+def write_record(path: Any, record: _Record) -> None:
+    """Writes a record returned by a reader (``read_any`` or ``read_<kind>``) with its
+    metadata and arrays unchanged: reading the result gives an equal record."""
+    write_file(path, record.KIND, record.arrays(), record.metadata, generator=None)
+
+
+def _finish(
+    path: Any,
+    kind: str,
+    tensors: dict[str, Any],
+    fixed: dict[str, str],
+    metadata: dict[str, str] | None,
+    generator: str | None,
+) -> None:
+    """Common tail of the per-kind writers: the kind's own keys override ``metadata``."""
+    meta = dict(metadata or {})
+    meta.update(fixed)
+    write_file(path, kind, {k: v for k, v in tensors.items() if v is not None}, meta, generator=generator)
+
+
+def _opt(path: str, name: str, value: Any, allowed: tuple[str, ...]) -> np.ndarray | None:
+    return None if value is None else _tensor(path, name, value, allowed)
+
+
+def write_cameras(
+    path: Any,
+    *,
+    image_names: list[str],
+    image_size: Any,
+    intrinsics: Any,
+    world_to_camera: Any,
+    distortion: Any = None,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.cameras`` (SPEC.md 4.1): ``image_size`` [V, 2] (w, h), ``intrinsics``
+    [V, 4] (fx, fy, cx, cy), ``world_to_camera`` [V, 3, 4] (OpenCV ``[R | t]``),
+    optional ``distortion`` [V, 4] (k1, k2, p1, p2)."""
+    p = _label(path)
+    tensors = {
+        "image_size": _tensor(p, "image_size", image_size, ("U32",)),
+        "intrinsics": _tensor(p, "intrinsics", intrinsics, ("F64",)),
+        "world_to_camera": _tensor(p, "world_to_camera", world_to_camera, ("F64",)),
+        "distortion": _opt(p, "distortion", distortion, ("F64",)),
+    }
+    fixed = {"image_names": _meta_names(p, "image_names", image_names), "convention": "opencv_world_to_camera"}
+    _finish(path, "cameras", tensors, fixed, metadata, generator)
+
+
+def write_gaussians(
+    path: Any,
+    *,
+    means: Any,
+    log_scales: Any,
+    rotations: Any,
+    opacity_logits: Any,
+    sh_dc: Any,
+    sh_rest: Any = None,
+    class_ids: Any = None,
+    sh_degree: int | None = None,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.gaussians`` (SPEC.md 4.2), INRIA 3DGS parameters. ``sh_rest`` is
+    [N, R, 3] with R = 3, 8, 15; ``sh_degree`` defaults to the degree R implies (0 when
+    ``sh_rest`` is None)."""
+    p = _label(path)
+    rest = _opt(p, "sh_rest", sh_rest, ("F32",))
+    if sh_degree is None:
+        r = rest.shape[1] if rest is not None and rest.ndim == 3 else 0
+        sh_degree = SH_REST_COEFFS.index(r) if r in SH_REST_COEFFS else 0
+    tensors = {
+        "means": _tensor(p, "means", means, ("F32",)),
+        "sh_rest": rest,
+        "log_scales": _tensor(p, "log_scales", log_scales, ("F32",)),
+        "rotations": _tensor(p, "rotations", rotations, ("F32",)),
+        "opacity_logits": _tensor(p, "opacity_logits", opacity_logits, ("F32",)),
+        "sh_dc": _tensor(p, "sh_dc", sh_dc, ("F32",)),
+        "class_ids": _opt(p, "class_ids", class_ids, ("I32",)),
+    }
+    _finish(path, "gaussians", tensors, {"sh_degree": _meta_int(p, "sh_degree", sh_degree)}, metadata, generator)
+
+
+def write_masks(
+    path: Any,
+    *,
+    view_names: list[str],
+    labels: Any,
+    mask_offsets: Any,
+    features: Any,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.masks`` (SPEC.md 4.3): ``labels`` U16 or U32 [V, H, W] of view-local
+    mask indices (the dtype's maximum = no mask; other integer arrays are stored as
+    U32), ``mask_offsets`` [V + 1], ``features`` F16 or F32 [M, D] with unit rows
+    (float64 is stored as F32)."""
+    p = _label(path)
+    tensors = {
+        "labels": _tensor(p, "labels", labels, ("U16", "U32")),
+        "mask_offsets": _tensor(p, "mask_offsets", mask_offsets, ("U32",)),
+        "features": _tensor(p, "features", features, ("F16", "F32")),
+    }
+    _finish(path, "masks", tensors, {"view_names": _meta_names(p, "view_names", view_names)}, metadata, generator)
+
+
+def write_matches(
+    path: Any,
+    *,
+    num_views: int,
+    coords: str,
+    pairs: Any,
+    warp: Any,
+    certainty: Any,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.matches`` (SPEC.md 4.4): dense warps; ``coords`` is ``normalized`` or
+    ``pixels``; ``warp`` [P, H, W, 2] (x before y) and ``certainty`` [P, H, W] are F16
+    or F32."""
+    p = _label(path)
+    tensors = {
+        "pairs": _tensor(p, "pairs", pairs, ("U32",)),
+        "warp": _tensor(p, "warp", warp, ("F16", "F32")),
+        "certainty": _tensor(p, "certainty", certainty, ("F16", "F32")),
+    }
+    fixed = {"num_views": _meta_int(p, "num_views", num_views), "coords": str(coords)}
+    _finish(path, "matches", tensors, fixed, metadata, generator)
+
+
+def write_sparse_matches(
+    path: Any,
+    *,
+    num_views: int,
+    pairs: Any,
+    pair_offsets: Any,
+    points_i: Any,
+    points_j: Any,
+    certainty: Any,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.sparse_matches`` (SPEC.md 4.5): pixel-pair matches in pixel
+    coordinates with centres at +0.5."""
+    p = _label(path)
+    tensors = {
+        "pairs": _tensor(p, "pairs", pairs, ("U32",)),
+        "pair_offsets": _tensor(p, "pair_offsets", pair_offsets, ("U64",)),
+        "points_i": _tensor(p, "points_i", points_i, ("F32",)),
+        "points_j": _tensor(p, "points_j", points_j, ("F32",)),
+        "certainty": _tensor(p, "certainty", certainty, ("F32",)),
+    }
+    _finish(path, "sparse_matches", tensors, {"num_views": _meta_int(p, "num_views", num_views)}, metadata, generator)
+
+
+def write_proposals(
+    path: Any,
+    *,
+    mask_proposal: Any,
+    proposal_size: Any,
+    proposal_views: Any,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.proposals`` (SPEC.md 4.6): proposal id per global mask (4294967295 =
+    none), members and distinct views per proposal."""
+    p = _label(path)
+    tensors = {
+        "mask_proposal": _tensor(p, "mask_proposal", mask_proposal, ("U32",)),
+        "proposal_size": _tensor(p, "proposal_size", proposal_size, ("U32",)),
+        "proposal_views": _tensor(p, "proposal_views", proposal_views, ("U32",)),
+    }
+    _finish(path, "proposals", tensors, {}, metadata, generator)
+
+
+def write_features(
+    path: Any,
+    *,
+    features: Any,
+    valid: Any,
+    weight_sum: Any = None,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.features`` (SPEC.md 4.7): ``features`` F16 or F32 [N, D], unit rows
+    where ``valid`` (U8 [N], 0 or 1; bool arrays are accepted) and all zero elsewhere."""
+    p = _label(path)
+    tensors = {
+        "features": _tensor(p, "features", features, ("F16", "F32")),
+        "valid": _tensor(p, "valid", valid, ("U8",)),
+        "weight_sum": _opt(p, "weight_sum", weight_sum, ("F32",)),
+    }
+    _finish(path, "features", tensors, {}, metadata, generator)
+
+
+def write_pq(
+    path: Any,
+    *,
+    centroids: Any,
+    codes: Any,
+    norms: Any,
+    valid: Any,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.pq`` (SPEC.md 4.8): ``centroids`` [M, 256, dsub] (faiss's layout),
+    ``codes`` U8 [N, M], ``norms`` [N], ``valid`` [N]."""
+    p = _label(path)
+    tensors = {
+        "centroids": _tensor(p, "centroids", centroids, ("F32",)),
+        "codes": _tensor(p, "codes", codes, ("U8",)),
+        "norms": _tensor(p, "norms", norms, ("F32",)),
+        "valid": _tensor(p, "valid", valid, ("U8",)),
+    }
+    _finish(path, "pq", tensors, {"metric": "inner_product", "nbits": "8"}, metadata, generator)
+
+
+def write_prompts(
+    path: Any,
+    *,
+    names: list[str],
+    embeddings: Any,
+    class_ids: Any = None,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.prompts`` (SPEC.md 4.9): unique non-empty ``names`` and their text
+    embeddings [Q, D]; optional ``class_ids`` I32 [Q] (-1 = none)."""
+    p = _label(path)
+    tensors = {
+        "embeddings": _tensor(p, "embeddings", embeddings, ("F32",)),
+        "class_ids": _opt(p, "class_ids", class_ids, ("I32",)),
+    }
+    _finish(path, "prompts", tensors, {"names": _meta_names(p, "names", names)}, metadata, generator)
+
+
+def write_selection(
+    path: Any,
+    *,
+    prompt: str,
+    num_gaussians: int,
+    gaussian_ids: Any,
+    scores: Any,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.selection`` (SPEC.md 4.10): strictly increasing ``gaussian_ids`` and
+    their ``scores``."""
+    p = _label(path)
+    tensors = {
+        "gaussian_ids": _tensor(p, "gaussian_ids", gaussian_ids, ("U32",)),
+        "scores": _tensor(p, "scores", scores, ("F32",)),
+    }
+    fixed = {"prompt": str(prompt), "num_gaussians": _meta_int(p, "num_gaussians", num_gaussians)}
+    _finish(path, "selection", tensors, fixed, metadata, generator)
+
+
+def write_vertex_labels(
+    path: Any,
+    *,
+    labels: Any,
+    confidence: Any = None,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.vertex_labels`` (SPEC.md 4.11): class per mesh vertex (-1 = none),
+    optional ``confidence`` in [0, 1]."""
+    p = _label(path)
+    tensors = {
+        "labels": _tensor(p, "labels", labels, ("I32",)),
+        "confidence": _opt(p, "confidence", confidence, ("F32",)),
+    }
+    _finish(path, "vertex_labels", tensors, {}, metadata, generator)
+
+
+def write_mesh(
+    path: Any,
+    *,
+    vertices: Any,
+    colors: Any = None,
+    faces: Any = None,
+    labels: Any = None,
+    instances: Any = None,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.mesh`` (SPEC.md 4.12): ``vertices`` [V, 3], optional RGB ``colors``
+    U8 [V, 3], ``faces`` U32 [F, 3], ``labels`` and ``instances`` U32 [V]."""
+    p = _label(path)
+    tensors = {
+        "vertices": _tensor(p, "vertices", vertices, ("F32",)),
+        "colors": _opt(p, "colors", colors, ("U8",)),
+        "faces": _opt(p, "faces", faces, ("U32",)),
+        "labels": _opt(p, "labels", labels, ("U32",)),
+        "instances": _opt(p, "instances", instances, ("U32",)),
+    }
+    _finish(path, "mesh", tensors, {}, metadata, generator)
+
+
+def write_view_maps(
+    path: Any,
+    *,
+    view_names: list[str],
+    num_objects: int,
+    depth: Any,
+    object_ids: Any = None,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.view_maps`` (SPEC.md 4.13): camera-space ``depth`` [V, H, W] (0 = no
+    surface) and optional ``object_ids`` U32 [V, H, W] (4294967295 = none)."""
+    p = _label(path)
+    tensors = {
+        "depth": _tensor(p, "depth", depth, ("F32",)),
+        "object_ids": _opt(p, "object_ids", object_ids, ("U32",)),
+    }
+    fixed = {
+        "view_names": _meta_names(p, "view_names", view_names),
+        "num_objects": _meta_int(p, "num_objects", num_objects),
+    }
+    _finish(path, "view_maps", tensors, fixed, metadata, generator)
+
+
+def write_topk(
+    path: Any,
+    *,
+    num_gaussians: int,
+    ids: Any,
+    weights: Any,
+    transmittance: Any,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.topk`` (SPEC.md 4.14): per-pixel top-K ``ids`` U32 [H, W, K]
+    (4294967295 pads), ``weights`` [H, W, K], ``transmittance`` [H, W]."""
+    p = _label(path)
+    tensors = {
+        "ids": _tensor(p, "ids", ids, ("U32",)),
+        "weights": _tensor(p, "weights", weights, ("F32",)),
+        "transmittance": _tensor(p, "transmittance", transmittance, ("F32",)),
+    }
+    _finish(path, "topk", tensors, {"num_gaussians": _meta_int(p, "num_gaussians", num_gaussians)}, metadata, generator)
+
+
+def write_fuse_partial(
+    path: Any,
+    *,
+    num_gaussians: int,
+    num_views: int,
+    k: int,
+    grouping: str,
+    orphans: str,
+    num_groups: int,
+    pixels: int,
+    hits: int,
+    views: Any,
+    mask_group: Any,
+    mask_features: Any,
+    mask_mass: Any,
+    w_offsets: Any,
+    w_groups: Any,
+    w_sums: Any,
+    mask_proposal: Any = None,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.fuse_partial`` (SPEC.md 4.15): partial sums of a ``fuse`` view shard.
+    ``mask_mass`` [M, 2] and ``w_sums`` [E, 2] are U64 (low, high) words of the
+    fixed-point sums (:func:`fixed_point_words` makes them from Python integers);
+    ``mask_proposal`` is given exactly for grouping ``blend``."""
+    p = _label(path)
+    tensors = {
+        "views": _tensor(p, "views", views, ("U32",)),
+        "mask_group": _tensor(p, "mask_group", mask_group, ("U32",)),
+        "mask_proposal": _opt(p, "mask_proposal", mask_proposal, ("U32",)),
+        "mask_features": _tensor(p, "mask_features", mask_features, ("F16", "F32")),
+        "mask_mass": _tensor(p, "mask_mass", mask_mass, ("U64",)),
+        "w_offsets": _tensor(p, "w_offsets", w_offsets, ("U64",)),
+        "w_groups": _tensor(p, "w_groups", w_groups, ("U32",)),
+        "w_sums": _tensor(p, "w_sums", w_sums, ("U64",)),
+    }
+    fixed = {
+        "num_gaussians": _meta_int(p, "num_gaussians", num_gaussians),
+        "num_views": _meta_int(p, "num_views", num_views),
+        "k": _meta_int(p, "k", k),
+        "grouping": str(grouping),
+        "orphans": str(orphans),
+        "num_groups": _meta_int(p, "num_groups", num_groups),
+        "pixels": _meta_int(p, "pixels", pixels),
+        "hits": _meta_int(p, "hits", hits),
+    }
+    _finish(path, "fuse_partial", tensors, fixed, metadata, generator)
 
 
 # --------------------------------------------------------------------------------------

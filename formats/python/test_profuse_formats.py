@@ -226,6 +226,21 @@ def sample(kind: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
             ).reshape(2, 3, 3),
             "transmittance": np.array([0.125, 0.1, 1.0, 0.1, 0.25, 0.0], f32).reshape(2, 3),
         }, {"num_gaussians": "7"}
+    if kind == "fuse_partial":
+        n = U32_NONE
+        return {
+            "views": np.array([0, 2], u32),
+            "mask_group": np.array([0, n, 2], u32),
+            "mask_proposal": np.array([0, n, 0], u32),
+            "mask_features": np.array([[1, 0], [0.6, 0.8], [0, 1]], f32),
+            "mask_mass": np.array([[5 << 40, 0], [0, 0], [7 << 40, 1]], np.uint64),
+            "w_offsets": np.array([0, 2, 2, 3, 4], np.uint64),
+            "w_groups": np.array([0, 2, 0, 2], u32),
+            "w_sums": np.array([[3 << 40, 0], [1 << 40, 0], [2 << 40, 0], [0, 1]], np.uint64),
+        }, {
+            "num_gaussians": "4", "num_views": "3", "k": "2", "grouping": "blend",
+            "orphans": "ignore", "num_groups": "3", "pixels": "10", "hits": "15",
+        }
     raise KeyError(kind)
 
 
@@ -246,6 +261,7 @@ GENERIC = {
     "mesh": ("vertices", "vertices", ("vertices", "colors")),
     "view_maps": ("depth", "depth", ("depth", "object_ids")),
     "topk": ("weights", "weights", ("ids", "weights")),
+    "fuse_partial": ("w_sums", "mask_features", ("mask_group", "mask_mass")),
 }
 
 # Per kind: a mutation putting an id or value out of range, and the field it names.
@@ -264,6 +280,7 @@ OUT_OF_RANGE: dict[str, tuple[Callable[[dict], None], str]] = {
     "mesh": (lambda t: t["faces"].__setitem__((1, 2), 4), "faces"),
     "view_maps": (lambda t: t["object_ids"].__setitem__((0, 0, 0), 3), "object_ids"),
     "topk": (lambda t: t["ids"].__setitem__((0, 0, 1), 7), "ids"),
+    "fuse_partial": (lambda t: t["mask_group"].__setitem__(2, 3), "mask_group"),
 }
 
 

@@ -131,6 +131,11 @@ macro_rules! row_element {
     )* };
 }
 row_element!(2, 3, 4, 12);
+// Fixed-point u128 sums stored as (low, high) words (`fuse_partial`).
+impl Element for [u64; 2] {
+    type Scalar = u64;
+    const LANES: usize = 2;
+}
 
 /// The bytes behind a container: a read-only memory map, or an in-memory copy.
 #[derive(Debug)]

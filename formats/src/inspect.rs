@@ -10,8 +10,8 @@ use crate::container::Container;
 use crate::error::{FormatError, Result};
 use crate::kind::{FileKind, Kind};
 use crate::{
-    Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
-    SparseMatches, TopK, VertexLabels, ViewMaps,
+    Cameras, Features, FusePartial, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals,
+    Selection, SparseMatches, TopK, VertexLabels, ViewMaps,
 };
 
 /// The outcome of inspecting one file.
@@ -102,5 +102,6 @@ pub fn validate_any(c: &Container) -> Result<BTreeMap<&'static str, u64>> {
         Kind::Mesh => counts::<Mesh>(c),
         Kind::ViewMaps => counts::<ViewMaps>(c),
         Kind::TopK => counts::<TopK>(c),
+        Kind::FusePartial => counts::<FusePartial>(c),
     }
 }

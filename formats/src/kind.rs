@@ -27,11 +27,12 @@ pub enum Kind {
     Mesh,
     ViewMaps,
     TopK,
+    FusePartial,
 }
 
 impl Kind {
     /// All kinds, in SPEC.md order.
-    pub const ALL: [Kind; 14] = [
+    pub const ALL: [Kind; 15] = [
         Kind::Cameras,
         Kind::Gaussians,
         Kind::Masks,
@@ -46,6 +47,7 @@ impl Kind {
         Kind::Mesh,
         Kind::ViewMaps,
         Kind::TopK,
+        Kind::FusePartial,
     ];
 
     /// Short name (`cameras`, `sparse_matches`, ...).
@@ -65,6 +67,7 @@ impl Kind {
             Kind::Mesh => "mesh",
             Kind::ViewMaps => "view_maps",
             Kind::TopK => "topk",
+            Kind::FusePartial => "fuse_partial",
         }
     }
 
@@ -85,6 +88,7 @@ impl Kind {
             Kind::Mesh => "profuse.mesh",
             Kind::ViewMaps => "profuse.view_maps",
             Kind::TopK => "profuse.topk",
+            Kind::FusePartial => "profuse.fuse_partial",
         }
     }
 

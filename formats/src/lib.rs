@@ -1,6 +1,6 @@
 //! Typed, validated readers and atomic writers for every file kind the ProFuse
 //! pipeline exchanges. `SPEC.md` at the repository root is the normative contract;
-//! this crate is its reference implementation and `formats/python/profuse_formats.py`
+//! this crate is its reference implementation and the Python package `formats/python`
 //! its mirror.
 //!
 //! # Design
@@ -50,6 +50,7 @@ mod check;
 mod container;
 mod error;
 mod features;
+mod fuse_partial;
 mod gaussians;
 pub mod ground_truth;
 mod inspect;
@@ -73,6 +74,9 @@ pub use check::{format_float, Floats, Labels};
 pub use container::{Buffer, Container, Dtype, Element, Scalar, TensorInfo, MAX_HEADER_BYTES};
 pub use error::{FormatError, Result};
 pub use features::Features;
+pub use fuse_partial::{
+    fixed_point, fixed_point_words, FuseGrouping, FuseOrphans, FusePartial, NO_GROUP,
+};
 pub use gaussians::{Gaussians, SH_REST_COEFFS};
 pub use inspect::{inspect, validate_any, Report};
 pub use kind::{check_version, FileKind, Kind, MAJOR_VERSION};

@@ -13,8 +13,8 @@ use crate::container::{Container, Dtype};
 use crate::kind::{FileKind, Kind};
 use crate::writer::FileWriter;
 use crate::{
-    Cameras, Features, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
-    SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords,
+    Cameras, Features, FuseGrouping, FuseOrphans, FusePartial, Gaussians, Masks, Matches, Mesh, Pq,
+    Prompts, Proposals, Selection, SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords,
 };
 
 /// Two views looking at the origin from +x and −z, 8x6 pixels.
@@ -335,6 +335,33 @@ pub fn topk() -> TopK {
         .into(),
         transmittance: vec![0.125, 0.1, 1.0, 0.1, 0.25, 0.0].into(),
         extra: BTreeMap::from([("view".to_string(), "0".to_string())]),
+    }
+}
+
+/// A blend shard over views 0 and 2 of 3: 3 masks (mask 1 an ignored orphan), 4
+/// Gaussians (Gaussian 1 never hit), 4 entries of W, one sum above 2^64.
+pub fn fuse_partial() -> FusePartial {
+    let n = u32::MAX;
+    FusePartial {
+        num_gaussians: 4,
+        num_views: 3,
+        k: 2,
+        grouping: FuseGrouping::Blend {
+            orphans: FuseOrphans::Ignore,
+        },
+        num_groups: 3,
+        pixels: 10,
+        hits: 15,
+        views: vec![0, 2].into(),
+        mask_group: vec![0, n, 2].into(),
+        mask_proposal: Some(vec![0, n, 0].into()),
+        mask_features: vec![1.0, 0.0, 0.6, 0.8, 0.0, 1.0].into(),
+        dim: 2,
+        mask_mass: vec![[5 << 40, 0], [0, 0], [7 << 40, 1]].into(),
+        w_offsets: vec![0, 2, 2, 3, 4].into(),
+        w_groups: vec![0, 2, 0, 2].into(),
+        w_sums: vec![[3 << 40, 0], [1 << 40, 0], [2 << 40, 0], [0, 1]].into(),
+        extra: BTreeMap::from([("weight_scale".to_string(), "2^-62".to_string())]),
     }
 }
 
@@ -1437,8 +1464,145 @@ fn cases() -> Vec<Case> {
         valid: v,
         invalid: inv,
     });
+    cases.push(fuse_partial_case());
 
     cases
+}
+
+/// The fuse_partial sample and its defects.
+fn fuse_partial_case() -> Case {
+    let fp = fuse_partial();
+    let v = bytes_of(&unvalidated(&fp));
+    let mut inv = container_defects(&v, "w_sums");
+    let proposals = |p: &mut FusePartial| {
+        p.grouping = FuseGrouping::Proposals {
+            orphans: FuseOrphans::Ignore,
+        };
+    };
+    inv.extend([
+        (
+            "missing_tensor",
+            without_tensor(&v, "w_offsets"),
+            "missing_tensor",
+            Some("w_offsets"),
+        ),
+        (
+            "missing_proposal",
+            without_tensor(&v, "mask_proposal"),
+            "missing_tensor",
+            Some("mask_proposal"),
+        ),
+        (
+            "dtype",
+            retype(&v, "mask_mass", Dtype::F64),
+            "dtype",
+            Some("mask_mass"),
+        ),
+        (
+            "shape",
+            reshape(&v, "w_sums", &[4, 3]),
+            "shape",
+            Some("w_sums"),
+        ),
+        (
+            "offsets_shape",
+            reshape(&v, "w_offsets", &[4]),
+            "shape",
+            Some("w_offsets"),
+        ),
+        (
+            "metadata",
+            with_meta(&fp, "num_groups", None),
+            "metadata",
+            Some("num_groups"),
+        ),
+        (
+            "grouping",
+            with_meta(&fp, "grouping", Some("kmeans")),
+            "metadata",
+            Some("grouping"),
+        ),
+        (
+            "orphans",
+            with_meta(&fp, "orphans", Some("none")),
+            "metadata",
+            Some("orphans"),
+        ),
+        (
+            "blend_groups",
+            with_meta(&fp, "num_groups", Some("4")),
+            "metadata",
+            Some("num_groups"),
+        ),
+        (
+            "views",
+            mutated(&fp, |p| set(&mut p.views, 1, 0)),
+            "out_of_range",
+            Some("views"),
+        ),
+        (
+            "out_of_range",
+            mutated(&fp, |p| set(&mut p.mask_group, 2, 3)),
+            "out_of_range",
+            Some("mask_group"),
+        ),
+        (
+            "invalid",
+            mutated(&fp, |p| {
+                if let Some(mp) = &mut p.mask_proposal {
+                    set(mp, 1, 0);
+                }
+            }),
+            "invalid",
+            Some("mask_group"),
+        ),
+        (
+            "stray_proposal",
+            mutated(&fp, proposals),
+            "invalid",
+            Some("mask_proposal"),
+        ),
+        (
+            "masks_groups",
+            mutated(&fp, |p| {
+                p.grouping = FuseGrouping::Masks;
+                p.mask_proposal = None;
+            }),
+            "invalid",
+            Some("mask_group"),
+        ),
+        (
+            "non_finite",
+            mutated(&fp, |p| {
+                p.mask_features = vec![1.0, 0.0, f32::NAN, 0.8, 0.0, 1.0].into()
+            }),
+            "non_finite",
+            Some("mask_features"),
+        ),
+        (
+            "offsets",
+            mutated(&fp, |p| set(&mut p.w_offsets, 2, 1)),
+            "out_of_range",
+            Some("w_offsets"),
+        ),
+        (
+            "unsorted",
+            mutated(&fp, |p| set(&mut p.w_groups, 1, 0)),
+            "out_of_range",
+            Some("w_groups"),
+        ),
+        (
+            "zero_sum",
+            mutated(&fp, |p| set(&mut p.w_sums, 2, [0, 0])),
+            "out_of_range",
+            Some("w_sums"),
+        ),
+    ]);
+    Case {
+        stem: "fuse_partial",
+        valid: v,
+        invalid: inv,
+    }
 }
 
 /// Every golden vector, valid files first.

@@ -6,9 +6,9 @@ use std::path::{Path, PathBuf};
 
 use profuse_formats::samples::{self, Vector};
 use profuse_formats::{
-    f16, inspect, Cameras, Container, Features, FileKind, Floats, Gaussians, Labels, Masks,
-    Matches, Mesh, Pq, Prompts, Proposals, Selection, SparseMatches, TopK, VertexLabels, ViewMaps,
-    WarpCoords,
+    f16, fixed_point, fixed_point_words, inspect, Cameras, Container, Features, FileKind, Floats,
+    FusePartial, Gaussians, Labels, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
+    SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords,
 };
 use proptest::prelude::*;
 
@@ -119,6 +119,7 @@ fn each_typed_reader_rejects_its_defects() {
     check::<Mesh>("mesh");
     check::<ViewMaps>("view_maps");
     check::<TopK>("topk");
+    check::<FusePartial>("fuse_partial");
 }
 
 #[test]
@@ -138,6 +139,39 @@ fn samples_round_trip_and_are_zero_copy() {
     assert_eq!(back, g);
     assert!(back.means.is_zero_copy() && back.sh_rest.as_ref().unwrap().is_zero_copy());
     assert_eq!(back.counts().get("gaussians"), Some(&4));
+}
+
+/// The fuse_partial sample round-trips with its u128 sums intact (one above 2^64), its
+/// counts are the hand-counted ones, and the writer refuses a file its reader would refuse.
+#[test]
+fn fuse_partial_round_trips_and_the_writer_validates() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("f.safetensors");
+    let f = samples::fuse_partial();
+    f.write(&p).unwrap();
+    let back = FusePartial::read(&p).unwrap();
+    assert_eq!(back, f);
+    let sums: Vec<u128> = back.w_sums.iter().map(|w| fixed_point(*w)).collect();
+    assert_eq!(sums, [3 << 40, 1 << 40, 2 << 40, 1u128 << 64]);
+    assert_eq!(fixed_point_words(u128::MAX - 1), [u64::MAX - 1, u64::MAX]);
+    let counts: Vec<(&str, u64)> = back.counts().into_iter().collect();
+    assert_eq!(
+        counts,
+        [
+            ("entries", 4),
+            ("feature_dim", 2),
+            ("gaussians", 4),
+            ("groups", 3),
+            ("masks", 3),
+            ("summed_views", 2),
+            ("views", 3)
+        ]
+    );
+    let mut bad = f.clone();
+    bad.w_sums = vec![[1, 0], [1, 0], [1, 0]].into();
+    let err = bad.write(dir.path().join("bad.safetensors")).unwrap_err();
+    assert_eq!((err.code(), err.field()), ("shape", Some("w_sums")));
+    assert!(!dir.path().join("bad.safetensors").exists());
 }
 
 #[test]
