@@ -45,6 +45,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod camera;
 mod cameras;
 mod check;
 mod container;
@@ -59,6 +60,7 @@ mod mesh;
 mod pq;
 mod prompts;
 mod proposals;
+pub mod rng;
 pub mod samples;
 mod selection;
 mod topk;
