@@ -409,7 +409,10 @@ mod tests {
             let image_centre = [(i as f64 + 0.5) * sx, (j as f64 + 0.5) * sy];
             let a = pixel_to_normalised(&g, pixel_centre(i, j));
             let b = pixel_to_normalised(&k, image_centre);
-            assert!(close(a[0], b[0], 1e-15) && close(a[1], b[1], 1e-15), "{a:?} {b:?}");
+            assert!(
+                close(a[0], b[0], 1e-15) && close(a[1], b[1], 1e-15),
+                "{a:?} {b:?}"
+            );
         }
         let want = [102.5, 81.0, 80.375, 47.8];
         assert!((0..4).all(|i| close(g[i], want[i], 1e-12)), "{g:?}");
@@ -457,7 +460,9 @@ mod tests {
                 let p = pixel_centre(u, v);
                 let d = distort_pixel(&k, &FOX, p);
                 let back = undistort_pixel(&k, &FOX, d).unwrap_or([f64::NAN; 2]);
-                worst = worst.max((back[0] - p[0]).abs()).max((back[1] - p[1]).abs());
+                worst = worst
+                    .max((back[0] - p[0]).abs())
+                    .max((back[1] - p[1]).abs());
             }
         }
         assert!(worst < 1e-8, "worst round-trip error {worst} px");

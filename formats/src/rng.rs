@@ -101,7 +101,11 @@ mod tests {
         let first: Vec<u64> = (0..3).map(|_| r.next_u64()).collect();
         assert_eq!(
             first,
-            [0xE220_A839_7B1D_CDAF, 0x6E78_9E6A_A1B9_65F4, 0x06C4_5D18_8009_454F]
+            [
+                0xE220_A839_7B1D_CDAF,
+                0x6E78_9E6A_A1B9_65F4,
+                0x06C4_5D18_8009_454F
+            ]
         );
         for seed in [1u64, 42, u64::MAX, 0x0123_4567_89AB_CDEF] {
             let (mut a, mut x) = (SplitMix64::new(seed), seed);
@@ -125,7 +129,10 @@ mod tests {
             counts[r.below(7)] += 1;
         }
         // Each of 7 bins expects n/7 ≈ 2857 (sd ≈ 50).
-        assert!(counts.iter().all(|&c| c.abs_diff(n / 7) < 300), "{counts:?}");
+        assert!(
+            counts.iter().all(|&c| c.abs_diff(n / 7) < 300),
+            "{counts:?}"
+        );
         assert_eq!(unit_from_bits(u64::MAX), 1.0 - f64::EPSILON / 2.0);
         assert_eq!(unit_from_bits(0), 0.0);
     }

@@ -507,7 +507,10 @@ fn assemble(
         opacity_logits: vec![0.0; points.len()].into(),
         sh_dc: points
             .iter()
-            .map(|p| p.colour.map(|c| camera::colour_to_sh_dc(f64::from(c)) as f32))
+            .map(|p| {
+                p.colour
+                    .map(|c| camera::colour_to_sh_dc(f64::from(c)) as f32)
+            })
             .collect::<Vec<_>>()
             .into(),
         sh_degree: 0,

@@ -76,8 +76,11 @@ impl Kernel {
 /// Rotation matrix of a quaternion (w, x, y, z), normalised in f64; the zero (or
 /// non-finite) quaternion gives the identity.
 pub fn rotation_matrix(q: [f32; 4]) -> [[f64; 3]; 3] {
-    quaternion_to_rotation(q.map(f64::from))
-        .unwrap_or([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    quaternion_to_rotation(q.map(f64::from)).unwrap_or([
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 0.0, 1.0],
+    ])
 }
 
 /// Opacity 1 / (1 + exp(−logit)), evaluated in f64 (±inf logits give 1 and 0).
