@@ -20,6 +20,10 @@
 //! enum, [`FormatError`], whose variants name file, tensor and expectation; its
 //! [`FormatError::code`] is shared with the Python reader.
 //!
+//! Two small modules hold the math every stage shares, so that it exists once: [`camera`]
+//! (SPEC.md §3.3's poses, projection, pixel centres, grid intrinsics and lens model, and
+//! the SH DC colour rule of §4.2) and [`rng`] (the workspace's seeded SplitMix64).
+//!
 //! # Example: a round trip
 //!
 //! ```
