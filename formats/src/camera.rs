@@ -175,6 +175,14 @@ pub fn pixel_centre(col: usize, row: usize) -> [f64; 2] {
     [col as f64 + 0.5, row as f64 + 0.5]
 }
 
+/// Intrinsics `[f, f, W/2, H/2]` of a `width` x `height` image with square pixels, the
+/// principal point at the image centre and a horizontal field of view of `fov_x_deg`
+/// degrees: `f = (W/2) / tan(fov_x / 2)`.
+pub fn pinhole_intrinsics(width: u32, height: u32, fov_x_deg: f64) -> Intrinsics {
+    let f = 0.5 * f64::from(width) / (0.5 * fov_x_deg.to_radians()).tan();
+    [f, f, 0.5 * f64::from(width), 0.5 * f64::from(height)]
+}
+
 /// Intrinsics of the same camera on a `to = [width, height]` grid laid over its
 /// `from = [width, height]` image: scaled by `to / from` per axis, so that each grid
 /// pixel centre is the ray through the centre of the image region it covers. Unchanged
@@ -395,6 +403,17 @@ mod tests {
         let back = project(&k, [4.0 * n[0], 4.0 * n[1], 4.0]);
         assert!(close(back[0], 7.5, 1e-12) && close(back[1], 3.5, 1e-12));
         assert_eq!(normalised_to_pixel(&k, [0.1, -0.2]), [52.0, -6.0]);
+    }
+
+    #[test]
+    fn field_of_view_intrinsics_put_the_image_edges_at_half_the_angle() {
+        let k = pinhole_intrinsics(100, 50, 90.0);
+        assert!(close(k[0], 50.0, 1e-12) && k[0] == k[1]);
+        assert_eq!(k[2..], [50.0, 25.0]);
+        // The ray through the right image edge is fov_x / 2 = 30° off the axis.
+        let k = pinhole_intrinsics(64, 48, 60.0);
+        let [x, _] = pixel_to_normalised(&k, [64.0, 24.0]);
+        assert!(close(x.atan().to_degrees(), 30.0, 1e-12));
     }
 
     #[test]

@@ -139,10 +139,7 @@ pub fn look_at(eye: [f64; 3], target: [f64; 3], up: [f64; 3]) -> Option<[f64; 12
 
 /// Pinhole intrinsics `[fx, fy, cx, cy]` with square pixels, the principal point at the
 /// image centre and a horizontal field of view of `fov_x_deg` degrees.
-pub fn pinhole_intrinsics(width: u32, height: u32, fov_x_deg: f64) -> [f64; 4] {
-    let f = 0.5 * f64::from(width) / (0.5 * fov_x_deg.to_radians()).tan();
-    [f, f, 0.5 * f64::from(width), 0.5 * f64::from(height)]
-}
+pub use profuse_formats::camera::pinhole_intrinsics;
 
 /// A cameras table with the given views (names `view_000`, ...), all with one image size and
 /// intrinsics.

@@ -25,6 +25,8 @@ pub struct Camera {
 impl Camera {
     /// A camera at `center` looking at `target` with the world z axis up (image y down),
     /// fx = fy from the horizontal field of view, cx = W/2, cy = H/2.
+    /// (Not splat-raster's `look_at`: this one normalises by the reciprocal and falls back
+    /// to the y axis as up, and the written scenes depend on that arithmetic.)
     pub fn look_at(
         center: [f64; 3],
         target: [f64; 3],
@@ -41,12 +43,10 @@ impl Camera {
         let d = cross(f, r);
         let rotation = [r, d, f];
         let translation = [-dot(r, center), -dot(d, center), -dot(f, center)];
-        let w = f64::from(width);
-        let focal = (w / 2.0) / (hfov_deg.to_radians() / 2.0).tan();
         Camera {
             rotation,
             translation,
-            intrinsics: [focal, focal, w / 2.0, f64::from(height) / 2.0],
+            intrinsics: camera::pinhole_intrinsics(width, height, hfov_deg),
             width,
             height,
         }
