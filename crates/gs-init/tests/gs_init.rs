@@ -15,10 +15,9 @@ use synth::{Camera, Config, Preset, Scene};
 // ---------------------------------------------------------------- helpers
 
 fn view_of(c: &Camera) -> View {
-    let m = c.world_to_camera();
     View {
-        rotation: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
-        translation: [m[3], m[7], m[11]],
+        rotation: c.rotation,
+        translation: c.translation,
         intrinsics: c.intrinsics,
         distortion: [0.0; 4],
     }

@@ -840,9 +840,10 @@ mod tests {
 
     fn camera(w: u32, h: u32, intrinsics: [f64; 4], eye: [f64; 3], target: [f64; 3]) -> ViewCamera {
         let m = look_at(eye, target, [0.0, 0.0, 1.0]).unwrap();
+        let (rotation, translation) = camera::pose_from_row(&m);
         ViewCamera {
-            rotation: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
-            translation: [m[3], m[7], m[11]],
+            rotation,
+            translation,
             intrinsics,
             width: w,
             height: h,
