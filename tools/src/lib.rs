@@ -1,6 +1,8 @@
 //! Shared plumbing of the command-line tools: one JSON object on stdout, messages on
 //! stderr, exit code 1 with the full error chain on failure.
 
+pub mod scene;
+
 use std::error::Error;
 use std::io::{IsTerminal, Write};
 use std::process::ExitCode;
@@ -51,6 +53,89 @@ pub fn warn(quiet: bool, msg: &str) {
     }
 }
 
+/// A progress bar of `len` units on stderr when `show` (hidden otherwise):
+/// `PREFIX [bar] pos/len UNIT [elapsed < eta] msg`.
+pub fn progress_bar(show: bool, len: u64, prefix: &str, unit: &str) -> indicatif::ProgressBar {
+    if !show {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(len);
+    let template =
+        format!("{{prefix}} {{bar:40}} {{pos}}/{{len}} {unit} [{{elapsed}} < {{eta}}] {{msg}}");
+    if let Ok(style) = indicatif::ProgressStyle::with_template(&template) {
+        bar.set_style(style);
+    }
+    bar.set_prefix(prefix.to_string());
+    bar
+}
+
+/// A spinner with a message on stderr when `show` (hidden otherwise), for work of
+/// unknown length.
+pub fn spinner(show: bool, msg: &str) -> indicatif::ProgressBar {
+    if !show {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new_spinner();
+    bar.set_message(msg.to_string());
+    bar.enable_steady_tick(std::time::Duration::from_millis(120));
+    bar
+}
+
+/// A benchmark's progress ([`profuse_bench::common::Progress`]) as bars on stderr: a
+/// spinner for a phase of unknown length, else a bar.
+#[derive(Debug)]
+pub struct Bars {
+    show: bool,
+    bar: std::sync::Mutex<indicatif::ProgressBar>,
+}
+
+impl Bars {
+    /// Bars shown when `show` (see [`chatty`]).
+    pub fn new(show: bool) -> Bars {
+        Bars {
+            show,
+            bar: std::sync::Mutex::new(indicatif::ProgressBar::hidden()),
+        }
+    }
+}
+
+impl profuse_bench::common::Progress for Bars {
+    fn start(&self, phase: &str, len: u64) {
+        let bar = if len == 0 {
+            spinner(self.show, phase)
+        } else {
+            progress_bar(self.show, len, phase, "")
+        };
+        if let Ok(mut b) = self.bar.lock() {
+            b.finish_and_clear();
+            *b = bar;
+        }
+    }
+
+    fn inc(&self, n: u64) {
+        if let Ok(b) = self.bar.lock() {
+            b.inc(n);
+        }
+    }
+
+    fn finish(&self) {
+        if let Ok(b) = self.bar.lock() {
+            b.finish_and_clear();
+        }
+    }
+}
+
+/// Sets the size of rayon's global thread pool (`--threads`); `None` keeps rayon's
+/// default (RAYON_NUM_THREADS or the core count). Results never depend on it.
+pub fn init_threads(threads: Option<usize>) -> Result<(), BoxError> {
+    if let Some(n) = threads {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build_global()?;
+    }
+    Ok(())
+}
+
 /// Peak resident set size (VmHWM) of this process in MiB, from /proc/self/status
 /// (0 where unavailable). The `bench` subcommands report it.
 pub fn peak_rss_mb() -> f64 {
@@ -63,6 +148,22 @@ pub fn peak_rss_mb() -> f64 {
                 .and_then(|kb| kb.parse::<f64>().ok())
         })
         .map_or(0.0, |kb| kb / 1024.0)
+}
+
+/// Encodes a PNG (8-bit RGB, 8- or 16-bit grey) and writes it atomically.
+pub fn write_png(
+    path: &std::path::Path,
+    data: &[u8],
+    width: u32,
+    height: u32,
+    color: image::ExtendedColorType,
+) -> Result<(), BoxError> {
+    use image::ImageEncoder;
+    let mut bytes = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut bytes)
+        .write_image(data, width, height, color)
+        .map_err(|e| format!("cannot encode {}: {e}", path.display()))?;
+    write_file(path, &bytes)
 }
 
 /// Writes a tool's output file (JSON, PNG) atomically with

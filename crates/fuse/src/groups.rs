@@ -17,7 +17,9 @@ pub const NO_GROUP: u32 = NO_PROPOSAL;
 /// does. On the synthetic demo with the consensus grouping, `singleton` raised the
 /// ScanNet-protocol mIoU19 by 2-7 points over `ignore` and left LERF within ±0.2 (seeds
 /// 0, 3, 4; harsh segmentation seed 0: +7.1, LERF +0.3).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
 pub enum Orphans {
     /// Their pixels register nothing (the paper: pixels outside every proposal get the
     /// null label).

@@ -104,6 +104,7 @@ mod accumulate;
 mod error;
 mod finish;
 mod groups;
+pub mod job;
 mod partial;
 #[doc(hidden)]
 pub mod testing;

@@ -95,6 +95,7 @@
 //! ```
 
 mod error;
+mod flat;
 pub mod geometry;
 mod images;
 mod init;
@@ -108,6 +109,7 @@ use std::path::{Path, PathBuf};
 use profuse_formats::{Cameras, FileKind, Gaussians, Matches, SparseMatches};
 
 pub use error::{InitError, Result};
+pub use flat::FlatParams;
 pub use geometry::{triangulate, Gates, Reason, Triangulation, View};
 pub use images::{ImageDir, ImageSource, ViewImage};
 pub use init::{knn_scales, warp_to_pixels, MIN_KNN_DIST2, SH_C0};

@@ -56,6 +56,7 @@ pub mod cluster;
 mod error;
 pub mod lerf;
 pub mod mask;
+pub mod photo;
 pub mod scannet;
 pub mod surface;
 pub mod wrong_class;

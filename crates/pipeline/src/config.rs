@@ -14,352 +14,17 @@ use crate::error::{PipelineError, Result};
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     /// gs-init: triangulated initial Gaussians (paper 3.1).
-    pub gs_init: GsInit,
+    pub gs_init: gs_init::FlatParams,
     /// warp-graph: 3D Context Proposals (paper 3.2, Algorithm 1).
-    pub warp_graph: WarpGraph,
+    pub warp_graph: warp_graph::Params,
     /// fuse: registration of proposal descriptors (paper 3.3).
-    pub fuse: Fuse,
+    pub fuse: profuse_fuse::job::Params,
     /// pq: product quantisation (paper 3.4).
-    pub pq: PqConfig,
+    pub pq: profuse_pq::TrainParams,
     /// query: open-vocabulary selection (paper 3.4, 4.2).
     pub query: Query,
     /// vertex-transfer: mesh-vertex labels (paper 4.3).
     pub vertex_transfer: VertexTransfer,
-}
-
-/// gs-init parameters (EDGS / paper values).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct GsInit {
-    /// Reference views chosen by k-means over camera poses.
-    pub references: usize,
-    /// Neighbours per reference by pose distance.
-    pub neighbours: usize,
-    /// A match is confident when its certainty is above this.
-    pub certainty_threshold: f64,
-    /// Confident matches sampled per reference view.
-    pub budget: usize,
-    /// Seed of the reference k-means and of the sampling.
-    pub seed: u64,
-    /// Largest reprojection error (pixels) accepted in each view.
-    pub max_reproj_px: f64,
-    /// Smallest triangulation angle (degrees).
-    pub min_angle_deg: f64,
-    /// A point needs camera z > near in both views.
-    pub near: f64,
-    /// Initial scale rule: `pixels:P`, `distance:F` or `knn:K`.
-    pub scale: String,
-}
-
-impl Default for GsInit {
-    fn default() -> Self {
-        let p = gs_init::Params::default();
-        GsInit {
-            references: p.references,
-            neighbours: p.neighbours,
-            certainty_threshold: p.certainty_threshold,
-            budget: p.budget,
-            seed: p.seed,
-            max_reproj_px: p.max_reproj_px,
-            min_angle_deg: p.min_angle_deg,
-            near: p.near,
-            scale: "pixels:1".into(),
-        }
-    }
-}
-
-impl GsInit {
-    /// The crate's parameters.
-    pub fn params(&self) -> Result<gs_init::Params> {
-        let scale = parse_scale(&self.scale)?;
-        Ok(gs_init::Params {
-            references: self.references,
-            neighbours: self.neighbours,
-            certainty_threshold: self.certainty_threshold,
-            budget: self.budget,
-            seed: self.seed,
-            max_reproj_px: self.max_reproj_px,
-            min_angle_deg: self.min_angle_deg,
-            near: self.near,
-            scale,
-        })
-    }
-}
-
-fn parse_scale(s: &str) -> Result<gs_init::Scale> {
-    let bad = || PipelineError::Config {
-        key: "gs_init.scale".into(),
-        detail: format!("{s:?}; expected pixels[:P], distance[:F] or knn[:K]"),
-    };
-    let (mode, value) = s.split_once(':').unwrap_or((s, ""));
-    let num = |default: f64| -> Result<f64> {
-        if value.is_empty() {
-            Ok(default)
-        } else {
-            value.parse().map_err(|_| bad())
-        }
-    };
-    Ok(match mode {
-        "pixels" => gs_init::Scale::Pixels { pixels: num(1.0)? },
-        "distance" => gs_init::Scale::Distance {
-            factor: num(0.0005)?,
-        },
-        "knn" => gs_init::Scale::Knn {
-            k: if value.is_empty() {
-                3
-            } else {
-                value.parse().map_err(|_| bad())?
-            },
-        },
-        _ => return Err(bad()),
-    })
-}
-
-/// warp-graph parameters (the authors' run script: tau_iou 0.2, tau_box 0.08).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct WarpGraph {
-    /// Certainty threshold of the gate.
-    pub tau_alpha: f32,
-    /// Mask IoU threshold, both directions.
-    pub tau_iou: f64,
-    /// Bounding-box IoU threshold, both directions.
-    pub tau_box: f64,
-    /// Smallest proposal (masks).
-    pub s_min: usize,
-    /// Fewest distinct views of a proposal.
-    pub v_min: usize,
-    /// `bilinear` or `nearest` label warping.
-    pub sampling: String,
-    /// Occlusion test: `auto`, `none`, `depth`, `fwd-bwd` or `both`.
-    pub visibility: String,
-    /// Relative depth tolerance of the depth test.
-    pub depth_tolerance: f32,
-    /// Accumulated alpha below which rendered depth counts as unknown.
-    pub depth_min_alpha: f32,
-    /// Forward-backward tolerance in grid cells.
-    pub fwd_bwd_tolerance: f32,
-    /// Skip view pairs that lack one of their two warps.
-    pub require_both_warps: bool,
-    /// Same-view guard: masks of one view joined only with this many common linked masks
-    /// (0 = off, the paper's plain connected components).
-    pub same_view_support: usize,
-    /// Extent rule 1: refuse a union whose two components disagree in 3D below this
-    /// agreement (0 = off).
-    pub extent_agreement: f64,
-    /// Extent rule 2: merge components whose padded 3D boxes have at least this IoU
-    /// (0 = off).
-    pub extent_merge_iou: f64,
-    /// Share of an extent's points trimmed on each side of each axis for its box.
-    pub extent_trim: f64,
-    /// Box padding on each side, as a share of the scene diagonal.
-    pub extent_pad: f64,
-    /// How masks become proposals: `auto` (consensus, since the pipeline always has
-    /// cameras and Gaussians), `links` (paper Algorithm 1 with the guard and extent rules
-    /// above) or `consensus` (view consensus over the Gaussians).
-    pub grouping: String,
-    /// Consensus: share of a mask's points that must carry a label in a view for the view
-    /// to observe it.
-    pub consensus_visible_ratio: f64,
-    /// Consensus: share of the labelled points one mask must hold to contain the mask.
-    pub consensus_contained_ratio: f64,
-    /// Consensus: a mask split in more than this share of its observing views is
-    /// under-segmented.
-    pub consensus_undersegment_ratio: f64,
-    /// Consensus: two clusters join when supporters >= this share of observers.
-    pub consensus_threshold: f64,
-    /// Consensus: most Gaussians tracked as points.
-    pub consensus_max_points: usize,
-    /// Consensus: unite clusters along the warp links where no view contradicts.
-    pub consensus_link_merge: bool,
-}
-
-impl Default for WarpGraph {
-    fn default() -> Self {
-        let p = warp_graph::Params::default();
-        WarpGraph {
-            tau_alpha: p.tau_alpha,
-            tau_iou: p.tau_iou,
-            tau_box: p.tau_box,
-            s_min: p.s_min,
-            v_min: p.v_min,
-            sampling: p.sampling.name().into(),
-            visibility: p.visibility.name().into(),
-            depth_tolerance: p.depth_tolerance,
-            depth_min_alpha: p.depth_min_alpha,
-            fwd_bwd_tolerance: p.fwd_bwd_tolerance,
-            require_both_warps: p.require_both_warps,
-            same_view_support: p.same_view_support.unwrap_or(0),
-            extent_agreement: p.extent_agreement.unwrap_or(0.0),
-            extent_merge_iou: p.extent_merge_iou.unwrap_or(0.0),
-            extent_trim: p.extent_trim,
-            extent_pad: p.extent_pad,
-            grouping: p.grouping.name().into(),
-            consensus_visible_ratio: p.consensus.visible_ratio,
-            consensus_contained_ratio: p.consensus.contained_ratio,
-            consensus_undersegment_ratio: p.consensus.undersegment_ratio,
-            consensus_threshold: p.consensus.consensus,
-            consensus_max_points: p.consensus.max_points,
-            consensus_link_merge: p.consensus.link_merge,
-        }
-    }
-}
-
-impl WarpGraph {
-    /// The crate's parameters.
-    pub fn params(&self) -> Result<warp_graph::Params> {
-        use warp_graph::{Sampling, Visibility};
-        let sampling = match self.sampling.as_str() {
-            "bilinear" => Sampling::Bilinear,
-            "nearest" => Sampling::Nearest,
-            other => {
-                return Err(config_err(
-                    "warp_graph.sampling",
-                    other,
-                    "bilinear or nearest",
-                ))
-            }
-        };
-        let visibility = match self.visibility.as_str() {
-            "auto" => Visibility::Auto,
-            "none" => Visibility::None,
-            "depth" => Visibility::Depth,
-            "fwd-bwd" => Visibility::FwdBwd,
-            "both" => Visibility::Both,
-            other => {
-                return Err(config_err(
-                    "warp_graph.visibility",
-                    other,
-                    "auto, none, depth, fwd-bwd or both",
-                ))
-            }
-        };
-        let grouping = warp_graph::Grouping::parse(&self.grouping).ok_or_else(|| {
-            config_err(
-                "warp_graph.grouping",
-                &self.grouping,
-                "auto, links or consensus",
-            )
-        })?;
-        Ok(warp_graph::Params {
-            grouping,
-            consensus: warp_graph::ConsensusParams {
-                visible_ratio: self.consensus_visible_ratio,
-                contained_ratio: self.consensus_contained_ratio,
-                undersegment_ratio: self.consensus_undersegment_ratio,
-                consensus: self.consensus_threshold,
-                max_points: self.consensus_max_points,
-                link_merge: self.consensus_link_merge,
-            },
-            tau_alpha: self.tau_alpha,
-            tau_iou: self.tau_iou,
-            tau_box: self.tau_box,
-            s_min: self.s_min,
-            v_min: self.v_min,
-            sampling,
-            visibility,
-            depth_tolerance: self.depth_tolerance,
-            depth_min_alpha: self.depth_min_alpha,
-            fwd_bwd_tolerance: self.fwd_bwd_tolerance,
-            require_both_warps: self.require_both_warps,
-            same_view_support: (self.same_view_support > 0).then_some(self.same_view_support),
-            extent_agreement: (self.extent_agreement > 0.0).then_some(self.extent_agreement),
-            extent_merge_iou: (self.extent_merge_iou > 0.0).then_some(self.extent_merge_iou),
-            extent_trim: self.extent_trim,
-            extent_pad: self.extent_pad,
-            ..warp_graph::Params::default()
-        })
-    }
-}
-
-/// fuse parameters.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct Fuse {
-    /// Top-K contributors per pixel (paper: 10).
-    pub k: usize,
-    /// Masks without a proposal: `ignore` (paper) or `singleton`.
-    pub orphans: String,
-    /// The Dr. Splat-style baseline: every mask registers its own feature.
-    pub no_proposals: bool,
-    /// What a mask's pixels register: `proposals` (paper: its proposal's descriptor) or
-    /// `blend` (its proposal's descriptor blended with its own feature by how well it
-    /// agrees with the proposal, `profuse_fuse::Grouping::Blend`). Ignored with
-    /// `no_proposals`.
-    pub registration: String,
-}
-
-impl Default for Fuse {
-    fn default() -> Self {
-        Fuse {
-            k: profuse_fuse::DEFAULT_K,
-            orphans: profuse_fuse::Orphans::default().name().into(),
-            no_proposals: false,
-            registration: "proposals".into(),
-        }
-    }
-}
-
-impl Fuse {
-    /// The groups of the configured registration over `proposals`.
-    pub fn groups(
-        &self,
-        masks: &profuse_formats::Masks,
-        proposals: &profuse_formats::Proposals,
-        proposals_name: &str,
-    ) -> Result<profuse_fuse::Groups> {
-        let orphans = profuse_fuse::Orphans::parse(&self.orphans)
-            .ok_or_else(|| config_err("fuse.orphans", &self.orphans, "ignore or singleton"))?;
-        let groups = match self.registration.as_str() {
-            "proposals" => {
-                profuse_fuse::Groups::from_proposals(masks, proposals, orphans, proposals_name)
-            }
-            "blend" => profuse_fuse::Groups::blend(masks, proposals, orphans, proposals_name),
-            other => return Err(config_err("fuse.registration", other, "proposals or blend")),
-        };
-        groups.map_err(|e| PipelineError::Stage {
-            stage: "fuse",
-            source: Box::new(e),
-        })
-    }
-}
-
-/// pq parameters (faiss defaults; Dr. Splat's PQ128x8).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct PqConfig {
-    /// Sub-quantisers M (the descriptor dimension must be a multiple).
-    pub m: usize,
-    /// Lloyd iterations.
-    pub iters: usize,
-    /// Most training vectors.
-    pub sample: usize,
-    /// Seed.
-    pub seed: u64,
-}
-
-impl Default for PqConfig {
-    fn default() -> Self {
-        let p = profuse_pq::TrainParams::default();
-        PqConfig {
-            m: p.m,
-            iters: p.iters,
-            sample: p.sample,
-            seed: p.seed,
-        }
-    }
-}
-
-impl PqConfig {
-    /// The crate's parameters.
-    pub fn params(&self) -> profuse_pq::TrainParams {
-        profuse_pq::TrainParams {
-            m: self.m,
-            iters: self.iters,
-            sample: self.sample,
-            seed: self.seed,
-        }
-    }
 }
 
 /// query parameters.
@@ -527,17 +192,12 @@ impl Config {
 
     /// Checks every section by converting it to the crates' parameter types.
     pub fn validate(&self) -> Result<()> {
-        self.gs_init.params()?;
-        self.warp_graph.params()?;
-        profuse_fuse::Orphans::parse(&self.fuse.orphans)
-            .ok_or_else(|| config_err("fuse.orphans", &self.fuse.orphans, "ignore or singleton"))?;
-        if !matches!(self.fuse.registration.as_str(), "proposals" | "blend") {
-            return Err(config_err(
-                "fuse.registration",
-                &self.fuse.registration,
-                "proposals or blend",
-            ));
-        }
+        gs_init::Params::from(self.gs_init)
+            .validate()
+            .map_err(|e| config_err("gs_init", &e.to_string(), "parameters in their domains"))?;
+        self.warp_graph
+            .validate()
+            .map_err(|e| config_err("warp_graph", &e.to_string(), "parameters in their domains"))?;
         if !matches!(self.query.score.as_str(), "relevancy" | "cosine") {
             return Err(config_err(
                 "query.score",
@@ -587,7 +247,7 @@ mod tests {
             .unwrap();
         assert_eq!(c.fuse.k, 40);
         assert!(c.fuse.no_proposals);
-        assert_eq!(c.gs_init.scale, "knn:3");
+        assert_eq!(c.gs_init.scale, gs_init::Scale::Knn { k: 3 });
         assert_eq!(c.query.prompts, vec!["chair", "bed"]);
         let e = Config::default()
             .with_overrides(&["fuse.kk=4".into()])
@@ -611,10 +271,7 @@ mod tests {
     #[test]
     fn warp_graph_defaults_are_the_crates_and_zero_switches_a_rule_off() {
         let c = Config::default();
-        assert_eq!(
-            c.warp_graph.params().unwrap(),
-            warp_graph::Params::default()
-        );
+        assert_eq!(c.warp_graph, warp_graph::Params::default());
         let off = c
             .with_overrides(&[
                 "warp_graph.extent_agreement=0".into(),
@@ -622,9 +279,7 @@ mod tests {
                 "warp_graph.same_view_support=0".into(),
             ])
             .unwrap()
-            .warp_graph
-            .params()
-            .unwrap();
+            .warp_graph;
         assert_eq!(off.extent_agreement, None);
         assert_eq!(off.extent_merge_iou, None);
         assert_eq!(off.same_view_support, None);
@@ -633,32 +288,35 @@ mod tests {
 
     #[test]
     fn invalid_choices_are_config_errors() {
-        let mut c = Config::default();
-        c.warp_graph.visibility = "sometimes".into();
-        assert!(c
-            .validate()
+        let e = Config::default()
+            .with_overrides(&["warp_graph.visibility=sometimes".into()])
             .unwrap_err()
-            .to_string()
-            .contains("warp_graph.visibility"));
-        let mut c = Config::default();
-        c.gs_init.scale = "huge".into();
-        assert!(c
-            .validate()
+            .to_string();
+        assert!(e.contains("visibility") && e.contains("fwd-bwd"), "{e}");
+        let e = Config::default()
+            .with_overrides(&["gs_init.scale=huge".into()])
             .unwrap_err()
-            .to_string()
-            .contains("gs_init.scale"));
+            .to_string();
+        assert!(e.contains("scale") && e.contains("pixels"), "{e}");
         let c = Config::default()
-            .with_overrides(&["fuse.registration=\"mix\"".into()])
+            .with_overrides(&["warp_graph.tau_iou=1.5".into()])
             .unwrap();
-        assert!(c
-            .validate()
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("warp_graph") && e.contains("tau_iou"), "{e}");
+        let e = Config::default()
+            .with_overrides(&["fuse.registration=\"mix\"".into()])
             .unwrap_err()
-            .to_string()
-            .contains("fuse.registration"));
+            .to_string();
+        assert!(e.contains("registration") && e.contains("blend"), "{e}");
+        let e = Config::default()
+            .with_overrides(&["fuse.orphans=some".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("orphans") && e.contains("singleton"), "{e}");
         let c = Config::default()
             .with_overrides(&["fuse.registration=blend".into()])
             .unwrap();
-        assert_eq!(c.fuse.registration, "blend");
+        assert_eq!(c.fuse.registration, profuse_fuse::job::Register::Blend);
         c.validate().unwrap();
     }
 

@@ -8,7 +8,7 @@ use serde_json::{json, Value};
 
 use crate::config::Config;
 use crate::error::{stage_err, Result};
-use crate::run::{fuse_partial, Paths, RegisteredMasks, Summary};
+use crate::run::{fuse_job, Paths, RegisteredMasks, Summary};
 
 /// Every score the ground truth allows, as a JSON object with keys:
 /// `init_median_surface_dist_rel` and `init_surface` (gt/scene.json), `proposals_ari` and
@@ -140,9 +140,10 @@ pub fn wrong_class(
         None => {
             let mut config = config.clone();
             config.fuse.no_proposals = !p.suffix.is_empty();
-            let (partial, _) = fuse_partial(&config, p, &|_, _| {})?;
+            let run = profuse_fuse::job::run(&fuse_job(&config, p), &config.fuse, &mut |_| {})
+                .map_err(stage_err("fuse"))?;
             recomputed = RegisteredMasks(std::sync::Arc::new(
-                profuse_fuse::registered_mask_descriptors(&partial),
+                profuse_fuse::registered_mask_descriptors(&run.partial),
             ));
             &recomputed
         }

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use profuse_formats::{Cameras, Features, FileKind, Gaussians, Masks, Matches, Proposals};
+use profuse_formats::{Cameras, FileKind};
 use profuse_metrics::scannet::ClassSet;
 use serde::Serialize;
 use serde_json::{json, Value};
@@ -324,7 +324,7 @@ pub fn run(
         inputs,
         vec![p.gaussians.clone()],
         || {
-            let params = config.gs_init.params()?;
+            let params = gs_init::Params::from(config.gs_init);
             let match_file = if p.sparse {
                 gs_init::MatchFile::Sparse(p.matches.clone())
             } else {
@@ -363,22 +363,16 @@ pub fn run(
             ],
             vec![p.proposals.clone()],
             || {
-                let params = config.warp_graph.params()?;
-                let err = stage_err::<profuse_formats::FormatError>("warp-graph");
-                let masks = Masks::read(&p.masks).map_err(err)?;
-                let matches = Matches::read(&p.matches).map_err(stage_err("warp-graph"))?;
-                let cameras = Cameras::read(&p.cameras).map_err(stage_err("warp-graph"))?;
-                let gaussians = Gaussians::read(&p.gaussians).map_err(stage_err("warp-graph"))?;
-                let inputs = warp_graph::Inputs::new(&masks, &matches)
-                    .with_cameras(&cameras)
-                    .with_gaussians(&gaussians);
-                let outcome = warp_graph::build_proposals(inputs, &params)
+                let job = warp_graph::job::Job {
+                    masks: p.masks.clone(),
+                    matches: p.matches.clone(),
+                    cameras: Some(p.cameras.clone()),
+                    gaussians: Some(p.gaussians.clone()),
+                    out: p.proposals.clone(),
+                };
+                let report = warp_graph::job::run(&job, &config.warp_graph, &progress)
                     .map_err(stage_err("warp-graph"))?;
-                outcome
-                    .proposals
-                    .write(&p.proposals)
-                    .map_err(stage_err("warp-graph"))?;
-                Ok(to_json(&outcome.report))
+                Ok(to_json(&report))
             },
         )?);
     }
@@ -401,18 +395,18 @@ pub fn run(
         fuse_inputs,
         vec![p.features.clone()],
         || {
-            let (partial, precision) = fuse_partial(config, &p, &progress)?;
+            let job = fuse_job(config, &p).with_out(&p.features);
+            let views = Cameras::read(&p.cameras).map_or(0, |c| c.len());
+            let mut done = 0;
+            let run = profuse_fuse::job::run(&job, &config.fuse, &mut |_| {
+                done += 1;
+                progress(done, views)
+            })
+            .map_err(stage_err("fuse"))?;
             registered = Some(RegisteredMasks(std::sync::Arc::new(
-                profuse_fuse::registered_mask_descriptors(&partial),
+                profuse_fuse::registered_mask_descriptors(&run.partial),
             )));
-            let reg = profuse_fuse::finish(&partial, precision);
-            reg.features.write(&p.features).map_err(stage_err("fuse"))?;
-            let s = &reg.summary;
-            Ok(json!({
-                "gaussians": s.gaussians, "valid": s.valid, "nnz": s.nnz, "groups": s.groups,
-                "views": s.views, "masks": s.masks, "assigned_masks": s.assigned_masks,
-                "masks_with_mass": s.masks_with_mass, "pixels": s.pixels, "hits": s.hits,
-            }))
+            Ok(to_json(&run.report))
         },
     )?);
 
@@ -424,18 +418,9 @@ pub fn run(
         vec![p.features.clone()],
         vec![p.pq.clone()],
         || {
-            let features = Features::read(&p.features).map_err(stage_err("pq"))?;
-            let params = config.pq.params();
-            let codebook = profuse_pq::train(&features, &params).map_err(stage_err("pq"))?;
-            let pq = codebook
-                .encode_features(&features)
+            let report = profuse_pq::job::train_file(&p.features, &p.pq, &config.pq)
                 .map_err(stage_err("pq"))?;
-            pq.write(&p.pq).map_err(stage_err("pq"))?;
-            Ok(json!({
-                "m": params.m,
-                "vectors": pq.valid.len(),
-                "reconstruction_cosine": profuse_pq::reconstruction_cosine(&features, &pq),
-            }))
+            Ok(to_json(&report))
         },
     )?);
 
@@ -512,38 +497,15 @@ pub fn run(
     })
 }
 
-/// The fuse stage's accumulation over every view: the groups (proposals with the
-/// configured orphan policy, or one per mask for `fuse.no_proposals`) and the exact partial
-/// sums, plus the masks' feature precision. `progress` gets (views done, views).
-pub(crate) fn fuse_partial(
-    config: &Config,
-    p: &Paths,
-    progress: &dyn Fn(usize, usize),
-) -> Result<(profuse_fuse::PartialSums, profuse_fuse::Precision)> {
-    let err = |e: profuse_formats::FormatError| stage_err("fuse")(e);
-    let gaussians = Gaussians::read(&p.gaussians).map_err(err)?;
-    let cameras = Cameras::read(&p.cameras).map_err(err)?;
-    let masks = Masks::read(&p.masks).map_err(err)?;
-    let groups = if config.fuse.no_proposals {
-        profuse_fuse::Groups::per_mask(&masks)
+/// The fuse stage's job over every view: the proposals under the configured
+/// registration, or one group per mask for `fuse.no_proposals`; it writes nothing.
+pub(crate) fn fuse_job(config: &Config, p: &Paths) -> profuse_fuse::job::Job {
+    let job = profuse_fuse::job::Job::new(&p.gaussians, &p.cameras, &p.masks);
+    if config.fuse.no_proposals {
+        job.baseline()
     } else {
-        let proposals = Proposals::read(&p.proposals).map_err(err)?;
-        config
-            .fuse
-            .groups(&masks, &proposals, &p.proposals.display().to_string())?
-    };
-    let names = profuse_fuse::Names {
-        gaussians: p.gaussians.display().to_string(),
-        cameras: p.cameras.display().to_string(),
-        masks: p.masks.display().to_string(),
-    };
-    let scene = profuse_fuse::Scene::new(&gaussians, &cameras, &masks).named(names);
-    let views = cameras.len();
-    let partial = profuse_fuse::accumulate(&scene, &groups, config.fuse.k, 0..views, &mut |r| {
-        progress(r.view + 1, views)
-    })
-    .map_err(stage_err("fuse"))?;
-    Ok((partial, profuse_fuse::Precision::of(&masks.features)))
+        job.with_proposals(&p.proposals)
+    }
 }
 
 /// The paper's Table 4 grouping of stage seconds.

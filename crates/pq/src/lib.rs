@@ -75,6 +75,7 @@
 mod adc;
 mod codebook;
 mod error;
+pub mod job;
 pub mod synthetic;
 mod train;
 

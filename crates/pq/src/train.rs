@@ -9,8 +9,10 @@ use rayon::prelude::*;
 use crate::codebook::{argmin_first, nearest, sub_distances, transpose, Codebook};
 use crate::PqError;
 
-/// Training parameters; the defaults are the paper's / faiss's.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Training parameters; the defaults are the paper's / faiss's. As serde, the pipeline's
+/// `[pq]` section.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct TrainParams {
     /// Sub-quantisers M (D must be a multiple). Default 128 (Dr. Splat's PQ128x8 over 512-d).
     pub m: usize,

@@ -116,6 +116,7 @@ mod output;
 mod pipeline;
 mod score;
 mod select;
+pub mod stats;
 
 pub use activation::{activation, Activation, Membership};
 pub use error::{QueryError, Result};

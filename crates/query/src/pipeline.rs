@@ -288,7 +288,8 @@ pub enum ViewSelection {
 }
 
 /// Where the outputs go (see the crate docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Layout {
     /// `OUT/<prompt>/selection.safetensors`, `OUT/<prompt>/masks/<stem>.png`,

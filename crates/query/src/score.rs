@@ -21,7 +21,8 @@ pub const INVALID_SCORE: f32 = f32::NEG_INFINITY;
 const ROWS_PER_TASK: usize = 1024;
 
 /// Which score selects Gaussians.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum ScoreKind {
     /// s_g = ⟨q̂, f̂_g⟩ (paper §3.4).

@@ -146,6 +146,41 @@ impl ViewRender {
     pub fn depth(&self) -> Option<&[f32]> {
         (self.opts.depth != DepthMode::None).then_some(&self.depth[..])
     }
+    /// Depth quantised to 16 bits so that the largest depth is 65535: the values, the
+    /// scale (depth = value · scale; 0 when nothing was hit) and the largest depth.
+    pub fn depth_u16(&self) -> Option<(Vec<u16>, f64, f32)> {
+        let d = self.depth()?;
+        let max = d.iter().copied().fold(0.0f32, f32::max);
+        let scale = if max > 0.0 {
+            f64::from(max) / 65535.0
+        } else {
+            0.0
+        };
+        let q = d
+            .iter()
+            .map(|v| {
+                if scale > 0.0 {
+                    (f64::from(*v) / scale).round().clamp(0.0, 65535.0) as u16
+                } else {
+                    0
+                }
+            })
+            .collect();
+        Some((q, scale, max))
+    }
+    /// Top-K slots holding a Gaussian, and pixels whose K slots are all filled (0, 0 when
+    /// top-K is off).
+    pub fn topk_fill(&self) -> (usize, usize) {
+        let (Some(ids), k) = (self.topk_ids(), self.k()) else {
+            return (0, 0);
+        };
+        let filled = ids.iter().filter(|i| **i != NO_GAUSSIAN).count();
+        let full = ids
+            .chunks_exact(k.max(1))
+            .filter(|c| c[c.len() - 1] != NO_GAUSSIAN)
+            .count();
+        (filled, full)
+    }
     /// Accumulated alpha 1 − T_final, [H, W].
     pub fn alpha(&self) -> Option<&[f32]> {
         self.opts.alpha.then_some(&self.alpha[..])

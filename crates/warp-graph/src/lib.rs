@@ -128,8 +128,10 @@
 mod consensus;
 mod error;
 mod extent;
+mod flat;
 mod frame;
 mod graph;
+pub mod job;
 mod overlap;
 mod params;
 pub mod synthetic;
@@ -147,6 +149,7 @@ use splat_raster::{DepthMode, Rasterizer, RenderOptions, ViewRender};
 pub use consensus::{ConsensusParams, ConsensusStats, MIN_MASK_POINTS};
 pub use error::{Result, WarpGraphError};
 pub use extent::{Extent, BINS, MIN_EXTENT_CELLS};
+pub use flat::FlatParams;
 pub use graph::{ComponentStats, Link, Rejections};
 pub use overlap::{CellBox, CellCounts, DirectedOverlaps, Overlap};
 pub use params::{Grouping, Params, Sampling, Visibility};

@@ -4,7 +4,9 @@ use crate::consensus::ConsensusParams;
 use crate::error::{Result, WarpGraphError};
 
 /// How the label map of view j is sampled at a warped (sub-pixel) position.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "kebab-case")]
 pub enum Sampling {
     /// Bilinear weights over the four mask pixels whose centres surround the position
     /// (paper eq. warp: "bilinear sampling at sub-pixel accuracy"); each label receives the
@@ -26,7 +28,9 @@ impl Sampling {
 }
 
 /// Which occlusion test forms `vis_mask` (paper eq. gate).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "kebab-case")]
 pub enum Visibility {
     /// The best available: `Both` when cameras and Gaussians are given, else `FwdBwd`.
     #[default]
@@ -65,7 +69,9 @@ impl Visibility {
 }
 
 /// How the masks become proposals.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "kebab-case")]
 pub enum Grouping {
     /// The default: `Consensus` when cameras and Gaussians are given, else `Links`. On
     /// the accuracy sweep (crate README, "Measured") the consensus grouping keeps
@@ -121,7 +127,11 @@ impl Grouping {
 /// second one, active only with the guard and with depth (cameras and Gaussians); their
 /// values sit in the middle of a plateau (agreement 0.2-0.4 and merge IoU 0.05-0.2 change
 /// the mean ARI over eight synthetic demo scenes by less than 0.005).
-#[derive(Debug, Clone, Copy, PartialEq)]
+///
+/// As serde (the pipeline's `[warp_graph]` section), every parameter is one flat key:
+/// see [`crate::FlatParams`].
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(from = "crate::FlatParams", into = "crate::FlatParams")]
 pub struct Params {
     /// Certainty threshold τ_α of the gate Γ = [α >= τ_α] ∧ vis_mask, in [0, 1].
     pub tau_alpha: f32,
