@@ -24,21 +24,7 @@ fn view_of(c: &Camera) -> View {
 }
 
 fn cameras_of(cams: &[Camera]) -> Cameras {
-    Cameras {
-        image_names: (0..cams.len()).map(|i| format!("v{i}.png")).collect(),
-        image_size: cams
-            .iter()
-            .map(|c| [c.width, c.height])
-            .collect::<Vec<_>>()
-            .into(),
-        intrinsics: cams.iter().map(|c| c.intrinsics).collect::<Vec<_>>().into(),
-        world_to_camera: cams
-            .iter()
-            .map(Camera::world_to_camera)
-            .collect::<Vec<_>>()
-            .into(),
-        ..Default::default()
-    }
+    synth::cameras_table(cams, (0..cams.len()).map(|i| format!("v{i}.png")).collect())
 }
 
 fn pixel(v: &View, p: [f64; 3]) -> [f64; 2] {

@@ -96,6 +96,27 @@ impl Camera {
     }
 }
 
+/// A cameras table of these views (pinhole, no extra metadata), view `v` showing
+/// `image_names[v]`.
+pub fn cameras_table(cams: &[Camera], image_names: Vec<String>) -> Cameras {
+    Cameras {
+        image_names,
+        image_size: cams
+            .iter()
+            .map(|c| [c.width, c.height])
+            .collect::<Vec<_>>()
+            .into(),
+        intrinsics: cams.iter().map(|c| c.intrinsics).collect::<Vec<_>>().into(),
+        world_to_camera: cams
+            .iter()
+            .map(Camera::world_to_camera)
+            .collect::<Vec<_>>()
+            .into(),
+        distortion: None,
+        extra: Default::default(),
+    }
+}
+
 /// The cameras of a config: an elliptic orbit at `orbit_frac` of the room's half extents,
 /// evenly spaced from a seeded start angle, each with seeded height and look-at jitter.
 pub fn orbit(config: &Config) -> Vec<Camera> {
