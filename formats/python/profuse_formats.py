@@ -2178,5 +2178,205 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------------
+# Ground-truth JSON files (SPEC.md section 6.1): gt/scene.json and gt/mask_objects.json.
+# The mirror of the Rust module ``profuse_formats::ground_truth``: the same rules, in the
+# same order, with the same error codes ("io", "json", "invalid") and fields.
+# ---------------------------------------------------------------------------------------
+
+#: ``format`` of gt/scene.json and the ``version`` this reader knows.
+SCENE_FORMAT = "synth.scene"
+SCENE_VERSION = 1
+
+#: The NYU40 class names (the ``nyu40`` label space); class id i is ``NYU40[i - 1]``.
+NYU40 = (
+    "wall", "floor", "cabinet", "bed", "chair", "sofa", "table", "door", "window",
+    "bookshelf", "picture", "counter", "blinds", "desk", "shelves", "curtain", "dresser",
+    "pillow", "mirror", "floormat", "clothes", "ceiling", "books", "refrigerator",
+    "television", "paper", "towel", "showercurtain", "box", "whiteboard", "person",
+    "nightstand", "toilet", "sink", "lamp", "bathtub", "bag", "otherstructure",
+    "otherfurniture", "otherprop",
+)
+
+
+class GtError(Exception):
+    """Why a ground-truth file could not be read: ``code`` is ``io``, ``json`` (not JSON,
+    or a field missing or of the wrong type) or ``invalid`` (a value breaks a rule);
+    ``field`` names the field for ``invalid``, else ``None``."""
+
+    def __init__(self, code: str, path: str, message: str, field: str | None = None):
+        super().__init__(message)
+        self.code = code
+        self.field = field
+        self.path = path
+        self.message = message
+
+    def __repr__(self) -> str:
+        return f"GtError(code={self.code!r}, field={self.field!r}, message={self.message!r})"
+
+
+@dataclasses.dataclass
+class SceneObject:
+    """One object of gt/scene.json (index = object id of gt/views.safetensors)."""
+
+    index: int
+    name: str
+    class_id: int
+    class_name: str
+    room: bool
+
+
+@dataclasses.dataclass
+class SceneTruth:
+    """The parts of gt/scene.json readers outside the generator use."""
+
+    label_space: str
+    room_size: tuple[float, float, float]
+    objects: list[SceneObject]
+
+    def object_classes(self) -> list[int]:
+        """The class id of every object, index = object id."""
+        return [o.class_id for o in self.objects]
+
+
+@dataclasses.dataclass
+class MaskObjects:
+    """gt/mask_objects.json: ``objects[i]`` is the object of global mask i (None: no object)."""
+
+    objects: list[int | None]
+
+
+def _gt_load(path: str | os.PathLike[str], expected: str) -> tuple[str, Any]:
+    shown = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except OSError as err:
+        raise GtError("io", shown, f"{shown}: cannot read: {err.strerror or err}") from err
+    try:
+        return shown, json.loads(text)
+    except json.JSONDecodeError as err:
+        raise GtError("json", shown, f"{shown}: not a valid {expected}: {err}") from err
+
+
+def _gt_structure(shown: str, expected: str, ok: bool) -> None:
+    if not ok:
+        raise GtError("json", shown, f"{shown}: not a valid {expected}: wrong structure")
+
+
+def _is_int(v: Any, lo: int = 0, hi: int = 2**64 - 1) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _gt_invalid(shown: str, field: str, detail: str) -> GtError:
+    return GtError("invalid", shown, f"{shown}: `{field}`: {detail}", field)
+
+
+def read_scene_truth(path: str | os.PathLike[str]) -> SceneTruth:
+    """Reads and validates gt/scene.json (rules of SPEC.md section 6.1)."""
+    expected = "gt/scene.json"
+    shown, j = _gt_load(path, expected)
+    room = j.get("room") if isinstance(j, dict) else None
+    size = room.get("size") if isinstance(room, dict) else None
+    objects = j.get("objects") if isinstance(j, dict) else None
+    _gt_structure(
+        shown,
+        expected,
+        isinstance(j, dict)
+        and isinstance(j.get("format"), str)
+        and _is_int(j.get("version"), 0, 2**32 - 1)
+        and isinstance(j.get("label_space"), str)
+        and isinstance(size, list)
+        and len(size) == 3
+        and all(_is_number(v) for v in size)
+        and isinstance(objects, list),
+    )
+    parsed = []
+    for o in objects:
+        _gt_structure(
+            shown,
+            expected,
+            isinstance(o, dict)
+            and _is_int(o.get("index"), 0, 2**32 - 1)
+            and isinstance(o.get("name"), str)
+            and _is_int(o.get("class_id"), 0, 2**32 - 1)
+            and isinstance(o.get("class_name"), str)
+            and isinstance(o.get("room"), bool),
+        )
+        parsed.append(SceneObject(o["index"], o["name"], o["class_id"], o["class_name"], o["room"]))
+    if j["format"] != SCENE_FORMAT:
+        raise _gt_invalid(shown, "format", f"{j['format']!r}, expected {SCENE_FORMAT!r}")
+    if j["version"] != SCENE_VERSION:
+        raise _gt_invalid(shown, "version", f"{j['version']}, expected {SCENE_VERSION}")
+    if not all(math.isfinite(v) and v > 0 for v in size):
+        raise _gt_invalid(shown, "room.size", f"{size}, expected three finite lengths > 0")
+    names: set[str] = set()
+    for i, o in enumerate(parsed):
+        if o.index != i:
+            raise _gt_invalid(shown, f"objects[{i}].index", f"{o.index}, expected {i}")
+        if not o.name or o.name in names:
+            raise _gt_invalid(shown, f"objects[{i}].name", f"{o.name!r}, expected a unique name")
+        names.add(o.name)
+        if j["label_space"] == "nyu40":
+            if not 1 <= o.class_id <= len(NYU40):
+                raise _gt_invalid(
+                    shown, f"objects[{i}].class_id", f"{o.class_id}, expected a NYU40 id in 1..=40"
+                )
+            if o.class_name != NYU40[o.class_id - 1]:
+                raise _gt_invalid(
+                    shown,
+                    f"objects[{i}].class_name",
+                    f"{o.class_name!r}, expected {NYU40[o.class_id - 1]!r}",
+                )
+    return SceneTruth(j["label_space"], (size[0], size[1], size[2]), parsed)
+
+
+def read_mask_objects(path: str | os.PathLike[str]) -> MaskObjects:
+    """Reads and validates gt/mask_objects.json (rules of SPEC.md section 6.1)."""
+    expected = "gt/mask_objects.json"
+    shown, j = _gt_load(path, expected)
+    masks = j.get("masks") if isinstance(j, dict) else None
+    _gt_structure(
+        shown,
+        expected,
+        isinstance(j, dict) and _is_int(j.get("num_masks")) and isinstance(masks, list),
+    )
+    for m in masks:
+        _gt_structure(
+            shown,
+            expected,
+            isinstance(m, dict)
+            and _is_int(m.get("id"))
+            and (m.get("object") is None or _is_int(m["object"], 0, 2**32 - 1)),
+        )
+    n = j["num_masks"]
+    if len(masks) != n:
+        raise _gt_invalid(shown, "masks", f"{len(masks)} entries, expected num_masks = {n}")
+    objects: list[int | None] = [None] * n
+    seen = [False] * n
+    for k, m in enumerate(masks):
+        if m["id"] >= n or seen[m["id"]]:
+            raise _gt_invalid(shown, f"masks[{k}].id", f"{m['id']}, expected each of 0..{n} once")
+        if m.get("object") == 2**32 - 1:
+            raise _gt_invalid(shown, f"masks[{k}].object", "4294967295 is reserved")
+        seen[m["id"]] = True
+        objects[m["id"]] = m.get("object")
+    return MaskObjects(objects)
+
+
+__all__ += [
+    "GtError",
+    "SceneObject",
+    "SceneTruth",
+    "MaskObjects",
+    "read_scene_truth",
+    "read_mask_objects",
+]
+
+
 if __name__ == "__main__":
     sys.exit(main())

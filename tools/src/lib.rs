@@ -2,6 +2,7 @@
 //! stderr, exit code 1 with the full error chain on failure.
 
 pub mod scene;
+pub mod stages;
 
 use std::error::Error;
 use std::io::{IsTerminal, Write};
@@ -18,6 +19,23 @@ pub fn run(body: impl FnOnce() -> Result<serde_json::Value, BoxError>) -> ExitCo
             let text = serde_json::to_string_pretty(&value).unwrap_or_else(|_| "{}".to_string());
             let mut out = std::io::stdout().lock();
             if writeln!(out, "{text}").is_err() {
+                return ExitCode::FAILURE;
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            report_error(&*e);
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Prints `text` and a newline on stdout, or on failure the error (exit code 1): for
+/// commands whose result is text rather than one JSON object.
+pub fn print_result(result: Result<String, BoxError>) -> ExitCode {
+    match result {
+        Ok(text) => {
+            if writeln!(std::io::stdout().lock(), "{text}").is_err() {
                 return ExitCode::FAILURE;
             }
             ExitCode::SUCCESS

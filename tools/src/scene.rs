@@ -41,15 +41,22 @@ pub struct ViewArgs {
 /// Reads a gaussians file or an INRIA PLY (by extension).
 pub fn load_scene(path: &Path, quiet: bool) -> Result<Gaussians, BoxError> {
     let (g, report) = scene_io::ply::read_gaussians(path)?;
-    if let Some(r) = report.filter(|r| r.clamped_opacity > 0) {
-        let n = r.clamped_opacity;
+    if let Some(r) = &report {
+        warn_clamped(quiet, path, r);
+    }
+    Ok(g)
+}
+
+/// Warns when the PLY reader had to clamp opacity logits.
+pub fn warn_clamped(quiet: bool, path: &Path, report: &scene_io::PlyReport) {
+    if report.clamped_opacity > 0 {
+        let n = report.clamped_opacity;
         let msg = format!(
             "{}: clamped {n} non-finite opacity logits to ±20",
             path.display()
         );
         warn(quiet, &msg);
     }
-    Ok(g)
 }
 
 /// The cameras, view index, output stem and report entry of the requested view.

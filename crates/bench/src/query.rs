@@ -3,6 +3,7 @@
 
 use std::time::Instant;
 
+use profuse_formats::label_space::CANONICAL_NEGATIVES;
 use profuse_formats::rng::SplitMix64;
 use profuse_formats::{f16, Features, Floats, Prompts};
 use profuse_query::{
@@ -54,7 +55,7 @@ pub fn run(a: &Params) -> Result<Value, BoxError> {
     let mut rng = SplitMix(SplitMix64::new(0x9e37_79b9));
     // Prompts: random unit vectors, plus the four canonical negatives for relevancy.
     let mut names: Vec<String> = (0..a.prompts).map(|i| format!("prompt_{i}")).collect();
-    names.extend(["object", "things", "stuff", "texture"].map(String::from));
+    names.extend(CANONICAL_NEGATIVES.map(String::from));
     let embeddings: Vec<f32> = (0..names.len() * d).map(|_| rng.normal()).collect();
     let prompts = Prompts {
         names,

@@ -7,7 +7,9 @@
 //! use profuse_fuse::job::{self, Job, Params};
 //!
 //! let dir = tempfile::tempdir()?;
-//! synth::generate(&synth::Config::preset(synth::Preset::Tiny, 1), dir.path())?;
+//! let mut config = synth::Config::preset(synth::Preset::Tiny, 1);
+//! config.gaussians = 2000; // ground-truth Gaussians, which the tiny preset leaves out
+//! synth::generate(&config, dir.path())?;
 //! let file = |name: &str| dir.path().join(name);
 //! let job = Job::new(
 //!     &file("gt/gaussians.safetensors"),

@@ -317,22 +317,14 @@ fn finish_report(
     report
 }
 
-/// Renders `views` one at a time at the mask grid with top-K `k` and accumulates the mask
-/// masses and W into exact partial sums; `progress` is called after every view.
-pub fn accumulate(
-    scene: &Scene<'_>,
-    groups: &Groups,
-    k: usize,
-    views: Range<usize>,
-    progress: &mut dyn FnMut(&ViewReport),
-) -> Result<PartialSums> {
+/// Checks the scene, that the groups cover its masks and that `views` is a non-empty range
+/// of its views.
+fn check_job(scene: &Scene<'_>, groups: &Groups, views: &Range<usize>) -> Result<()> {
     scene.check()?;
-    let masks = scene.masks;
-    let names = &scene.names;
     groups
-        .check(masks.num_masks())
+        .check(scene.masks.num_masks())
         .map_err(|detail| FuseError::BadGrouping {
-            masks: names.masks.clone(),
+            masks: scene.names.masks.clone(),
             detail,
         })?;
     let num_views = scene.cameras.len();
@@ -343,6 +335,22 @@ pub fn accumulate(
             views: num_views,
         });
     }
+    Ok(())
+}
+
+/// Renders `views` one at a time at the mask grid with top-K `k` and accumulates the mask
+/// masses and W into exact partial sums; `progress` is called after every view.
+pub fn accumulate(
+    scene: &Scene<'_>,
+    groups: &Groups,
+    k: usize,
+    views: Range<usize>,
+    progress: &mut dyn FnMut(&ViewReport),
+) -> Result<PartialSums> {
+    check_job(scene, groups, &views)?;
+    let masks = scene.masks;
+    let names = &scene.names;
+    let num_views = scene.cameras.len();
     let render_err = |source| FuseError::Render {
         cameras: names.cameras.clone(),
         source,

@@ -205,63 +205,12 @@ pub fn adjusted_rand_index(predicted: &[u32], truth: &[u32]) -> Result<f64> {
     Ok(contingency(predicted, truth)?.ari())
 }
 
-#[derive(serde::Deserialize)]
-struct MaskObjectsJson {
-    num_masks: usize,
-    masks: Vec<MaskObjectJson>,
-}
-
-#[derive(serde::Deserialize)]
-struct MaskObjectJson {
-    id: usize,
-    object: Option<u32>,
-}
-
-/// Reads synth's `gt/mask_objects.json` as the ground truth of each global mask: entry
-/// `i` is `masks[k].object` of the entry with `id == i` (`u32::MAX` where `object` is
-/// null, i.e. the mask lies on no object). Ids must be exactly `0..num_masks`.
+/// Reads `gt/mask_objects.json` (SPEC.md §6.1, through the typed reader of
+/// `profuse-formats`) as the ground truth of each global mask: entry `i` is the object of
+/// mask `i`, [`NONE`] where the mask lies on no object.
 pub fn read_mask_objects(path: impl AsRef<std::path::Path>) -> Result<Vec<u32>> {
-    let path = path.as_ref();
-    let shown = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(crate::error::io_err(path, "cannot read"))?;
-    let json: MaskObjectsJson =
-        serde_json::from_str(&text).map_err(|source| MetricsError::Json {
-            path: shown.clone(),
-            expected: "synth mask_objects.json ({num_masks, masks: [{id, object}]})",
-            source,
-        })?;
-    if json.masks.len() != json.num_masks {
-        return Err(crate::invalid(
-            &shown,
-            "masks",
-            format!(
-                "{} entries, expected num_masks = {}",
-                json.masks.len(),
-                json.num_masks
-            ),
-        ));
-    }
-    let mut truth = vec![NONE; json.num_masks];
-    let mut seen = vec![false; json.num_masks];
-    for (k, m) in json.masks.iter().enumerate() {
-        if m.id >= json.num_masks || seen[m.id] {
-            return Err(crate::invalid(
-                &shown,
-                format!("masks[{k}].id"),
-                format!("{}, expected each of 0..{} once", m.id, json.num_masks),
-            ));
-        }
-        if m.object == Some(NONE) {
-            return Err(crate::invalid(
-                &shown,
-                format!("masks[{k}].object"),
-                format!("{NONE} is reserved, expected an object index or null"),
-            ));
-        }
-        seen[m.id] = true;
-        truth[m.id] = m.object.unwrap_or(NONE);
-    }
-    Ok(truth)
+    let masks = profuse_formats::ground_truth::MaskObjects::read(path)?;
+    Ok(masks.objects.iter().map(|o| o.unwrap_or(NONE)).collect())
 }
 
 /// Scores a proposals file's mask → proposal assignment (`mask_proposal`, `u32::MAX` =

@@ -79,12 +79,10 @@ pub enum MetricsError {
     /// A pipeline file could not be read or failed validation.
     #[error(transparent)]
     Format(#[from] profuse_formats::FormatError),
-    /// A ScanNet file could not be imported.
+    /// A ground-truth file (`gt/scene.json`, `gt/mask_objects.json`) could not be read or
+    /// failed validation.
     #[error(transparent)]
-    SceneIo(#[from] scene_io::SceneError),
-    /// A synthetic scene description could not be read.
-    #[error(transparent)]
-    Synth(#[from] synth::SynthError),
+    GroundTruth(#[from] profuse_formats::ground_truth::GtError),
 }
 
 /// Result alias of this crate.

@@ -206,16 +206,7 @@ pub fn category_masks(frame: &LabelFrame) -> BTreeMap<String, Mask> {
 /// control characters (NUL included) replaced by `_` (and `_` prefixed to an empty, `.` or `..` result). Writers of
 /// prediction folders (the `query` tool) use the same function.
 pub fn query_file_name(query: &str) -> String {
-    let name: String = query
-        .chars()
-        .map(|c| {
-            if matches!(c, '/' | '\\') || c.is_control() {
-                '_'
-            } else {
-                c
-            }
-        })
-        .collect();
+    let name = profuse_formats::label_space::prompt_file_stem(query);
     if matches!(name.as_str(), "" | "." | "..") {
         format!("_{name}")
     } else {

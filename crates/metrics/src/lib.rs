@@ -8,7 +8,8 @@
 //!   predictions against mesh labels, mIoU and mAcc over the 19/15/10-class sets.
 //! * [`cluster`]: adjusted Rand index, purity and completeness of a clustering (3D
 //!   Context Proposals against synth's per-mask ground-truth objects).
-//! * [`surface`]: distances of reconstructed points to the exact surface of a synth scene.
+//! * [`surface`]: distances of reconstructed points to an exact surface (a distance
+//!   function the caller supplies, e.g. a synth scene's).
 //! * [`wrong_class`]: the share of mask pixels whose registered descriptor's best class
 //!   prompt is not their ground-truth object's class (proposals against the baseline).
 //!
@@ -16,8 +17,11 @@
 //!
 //! Every metric is a pure function of in-memory arrays (exact integer counts first, one
 //! division at the end), so it can be tested against hand-computed cases and brute force;
-//! readers of the on-disk inputs are thin and separate (`read_*`), and reuse
-//! `profuse-formats`, `scene-io` and `synth` instead of parsing those files again.
+//! readers of the on-disk inputs are thin and separate (`read_*`), and reuse the typed
+//! readers of `profuse-formats` (ground truth under `gt/` included) instead of parsing
+//! those files again. The crate depends on no scene generator or importer (ARCHITECTURE.md):
+//! a ScanNet mesh is read by the caller (`scene_io::scannet::read_labelled_mesh`) and an
+//! exact surface is a closure.
 //! Conventions the papers leave implicit are fixed and documented in each module, following
 //! the reference code where there is one: OpenCV's polygon fill on int32 vertices, strict
 //! `IoU > 0.25`, classes averaged

@@ -17,24 +17,21 @@
 //! Every score is in percent (0..100), as the paper's tables. With no class of S present
 //! the means are NaN (`null` in JSON).
 
-use std::path::Path;
-
-use profuse_formats::{FileKind, Mesh};
+use profuse_formats::label_space::{nyu40_name, SCANNET_10, SCANNET_15, SCANNET_19};
+use profuse_formats::Mesh;
 use serde::Serialize;
 
 use crate::{invalid, MetricsError, Result};
 
 /// The NYU40 class names; id `i` (1-based) is `NYU40_NAMES[i - 1]`.
-pub use synth::classes::NYU40 as NYU40_NAMES;
+pub use profuse_formats::label_space::NYU40 as NYU40_NAMES;
 
 /// The 19 classes of OpenGaussian's ScanNet protocol.
-pub const CLASSES_19: [u32; 19] = [
-    1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14, 16, 24, 28, 33, 34, 36,
-];
+pub const CLASSES_19: [u32; 19] = SCANNET_19;
 /// The 15-class subset.
-pub const CLASSES_15: [u32; 15] = [1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 14, 16, 33, 34];
+pub const CLASSES_15: [u32; 15] = SCANNET_15;
 /// The 10-class subset.
-pub const CLASSES_10: [u32; 10] = [1, 2, 4, 5, 6, 7, 8, 9, 10, 33];
+pub const CLASSES_10: [u32; 10] = SCANNET_10;
 /// Every NYU40 class (not a paper setting; useful for synthetic scenes, whose ceiling 22
 /// and lamp 35 are in none of the paper's sets).
 pub const CLASSES_40: [u32; 40] = {
@@ -99,7 +96,7 @@ impl ClassSet {
 
 /// The NYU40 name of a class id (`None` outside 1..=40).
 pub fn class_name(id: u32) -> Option<&'static str> {
-    synth::classes::class_name(id)
+    nyu40_name(id)
 }
 
 /// One class of the per-class table.
@@ -284,24 +281,14 @@ pub fn mean_over_scenes(scenes: &[ScannetScores]) -> Result<ScannetMean> {
     })
 }
 
-/// Reads per-vertex ground-truth NYU40 labels through `scene-io`'s readers, by path:
-/// a mesh file (`.safetensors`, SPEC §4.12, needs its `labels` tensor), a ScanNet
-/// `*_vh_clean_2.labels.ply`, or a NumPy export (a directory holding one `*_vert_all.npy`,
-/// or that prefix, with `*_sem_label_all.npy` next to it).
-pub fn read_ground_truth(path: impl AsRef<Path>) -> Result<Vec<u32>> {
-    let path = path.as_ref();
-    let name = path.to_string_lossy();
-    let mesh = if name.ends_with(".safetensors") {
-        Mesh::read(path)?
-    } else if name.ends_with(".ply") {
-        scene_io::scannet::read_scannet_labels_ply(path)?.0
-    } else {
-        scene_io::scannet::read_scannet_npy(path)?.0
-    };
-    match mesh.labels {
+/// The per-vertex ground-truth NYU40 labels of a mesh (`file` names it in the error when
+/// it has none). Any source works: `Mesh::read` for a mesh file (SPEC.md §4.12), or
+/// `scene_io::scannet::read_labelled_mesh` for ScanNet's PLY and NumPy exports too.
+pub fn ground_truth_labels(mesh: &Mesh, file: impl std::fmt::Display) -> Result<Vec<u32>> {
+    match &mesh.labels {
         Some(labels) => Ok(labels.to_vec()),
         None => Err(invalid(
-            path.display(),
+            file,
             "labels",
             "the mesh has no per-vertex ground-truth labels",
         )),

@@ -1,5 +1,9 @@
-//! Distance of reconstructed points (e.g. Gaussian centres) to the exact surface of a
-//! synthetic scene, and robust summaries of those distances.
+//! Distance of reconstructed points (e.g. Gaussian centres) to an exact surface, and
+//! robust summaries of those distances.
+//!
+//! The surface is a distance function supplied by the caller (for synthetic scenes,
+//! `synth::Scene::distance_to_surface`), so this crate needs no geometry library and no
+//! scene generator: the metric is the bookkeeping, the geometry is the scene's.
 
 use rayon::prelude::*;
 use serde::Serialize;
@@ -22,17 +26,28 @@ pub struct DistanceSummary {
     pub median_rel: f64,
 }
 
-/// Distances of points to the exact synth surface (`synth::Scene::distance_to_surface`),
-/// in parallel, deterministic (each entry depends on its point only).
-pub fn surface_distances(points: &[[f32; 3]], scene: &synth::Scene) -> Vec<f32> {
-    surface_distances_with_progress(points, scene, |_| {})
+/// Distances of points to a surface, `distance(p)` for each point (e.g.
+/// `|p| scene.distance_to_surface(p)` for a synth scene), in parallel, deterministic (each
+/// entry depends on its point only).
+///
+/// ```
+/// use profuse_metrics::surface::surface_distances;
+/// // The plane z = 0.
+/// let d = surface_distances(&[[1.0, 2.0, 0.5], [0.0, 0.0, -2.0]], |p| p[2].abs());
+/// assert_eq!(d, vec![0.5, 2.0]);
+/// ```
+pub fn surface_distances(
+    points: &[[f32; 3]],
+    distance: impl Fn([f64; 3]) -> f64 + Sync,
+) -> Vec<f32> {
+    surface_distances_with_progress(points, distance, |_| {})
 }
 
 /// [`surface_distances`], calling `progress(n)` after each finished block of `n` points
 /// (from worker threads, in any order), e.g. to advance a progress bar.
 pub fn surface_distances_with_progress(
     points: &[[f32; 3]],
-    scene: &synth::Scene,
+    distance: impl Fn([f64; 3]) -> f64 + Sync,
     progress: impl Fn(usize) + Sync,
 ) -> Vec<f32> {
     let blocks: Vec<Vec<f32>> = points
@@ -40,7 +55,7 @@ pub fn surface_distances_with_progress(
         .map(|block| {
             let d = block
                 .iter()
-                .map(|p| scene.distance_to_surface(p.map(f64::from)) as f32)
+                .map(|p| distance(p.map(f64::from)) as f32)
                 .collect();
             progress(block.len());
             d
@@ -52,10 +67,15 @@ pub fn surface_distances_with_progress(
 /// Points per parallel task (and per progress report).
 const PROGRESS_BLOCK: usize = 2048;
 
-/// Length of the diagonal of the scene's bounding box: the room's inner box
+/// Length of the diagonal of a box of side lengths `size`: the extent distances are
+/// compared to. For a synth scene, `size` is its `room_size`, the room's inner box
 /// `[−x/2, x/2] × [−y/2, y/2] × [0, z]`, which contains every object.
-pub fn scene_extent(scene: &synth::Scene) -> f64 {
-    scene.room_size.iter().map(|v| v * v).sum::<f64>().sqrt()
+///
+/// ```
+/// assert_eq!(profuse_metrics::surface::scene_extent([2.0, 3.0, 6.0]), 7.0);
+/// ```
+pub fn scene_extent(size: [f64; 3]) -> f64 {
+    size.iter().map(|v| v * v).sum::<f64>().sqrt()
 }
 
 /// Quantile `q` in [0, 1] of sorted values, interpolating linearly between closest ranks.

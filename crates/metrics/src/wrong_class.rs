@@ -124,11 +124,10 @@ pub fn mask_classes(
         .collect()
 }
 
-/// Reads the class id of every object of synth's `gt/scene.json` (index = object id of
-/// `gt/views.safetensors`).
+/// Reads the class id of every object of `gt/scene.json` (index = object id of
+/// `gt/views.safetensors`), through the typed reader of `profuse-formats`.
 pub fn read_object_classes(path: impl AsRef<std::path::Path>) -> Result<Vec<u32>> {
-    let scene = synth::Scene::from_json(path.as_ref())?;
-    Ok(scene.objects.iter().map(|o| o.class_id).collect())
+    Ok(profuse_formats::ground_truth::SceneTruth::read(path)?.object_classes())
 }
 
 /// The wrong-class pixel share (see the module documentation) of `masks` with ground-truth

@@ -188,7 +188,7 @@ mod surface {
                 .num_threads(threads)
                 .build()
                 .unwrap()
-                .install(|| surface_distances(&points, &scene))
+                .install(|| surface_distances(&points, |p| scene.distance_to_surface(p)))
         };
         let d1 = run(1);
         assert_eq!(d1, run(4));
@@ -207,7 +207,7 @@ mod surface {
 
     #[test]
     fn extent_is_the_room_diagonal() {
-        assert_eq!(scene_extent(&ball_scene(0.1, [0.0; 3])), 13.0);
+        assert_eq!(scene_extent(ball_scene(0.1, [0.0; 3]).room_size), 13.0);
     }
 
     #[test]
@@ -797,7 +797,7 @@ mod lerf {
 
 mod scannet {
     use profuse_metrics::scannet::{
-        evaluate, mean_over_scenes, read_ground_truth, ClassSet, CLASSES_19,
+        evaluate, ground_truth_labels, mean_over_scenes, ClassSet, CLASSES_19,
     };
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
@@ -915,7 +915,8 @@ mod scannet {
             eprintln!("SKIPPED: {} is absent", dir.display());
             return;
         }
-        let truth = read_ground_truth(&dir).unwrap();
+        let mesh = scene_io::scannet::read_labelled_mesh(&dir).unwrap();
+        let truth = ground_truth_labels(&mesh, dir.display()).unwrap();
         assert_eq!(truth.len(), 81_369);
         let pred: Vec<i32> = truth.iter().map(|&t| t as i32).collect();
         for set in ClassSet::PAPER {

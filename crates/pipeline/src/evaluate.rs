@@ -3,7 +3,9 @@
 
 use std::collections::BTreeMap;
 
-use profuse_formats::{FileKind, Gaussians, Masks, Prompts, Proposals, VertexLabels, ViewMaps};
+use profuse_formats::{
+    FileKind, Gaussians, Masks, Mesh, Prompts, Proposals, VertexLabels, ViewMaps,
+};
 use serde_json::{json, Value};
 
 use crate::config::Config;
@@ -22,9 +24,10 @@ pub fn evaluate(p: &Paths) -> Result<BTreeMap<String, Value>> {
     if scene_json.is_file() && p.gaussians.is_file() && p.suffix.is_empty() {
         let scene = synth::Scene::from_json(&scene_json).map_err(stage_err("evaluate"))?;
         let g = Gaussians::read(&p.gaussians).map_err(stage_err("evaluate"))?;
-        let d = profuse_metrics::surface::surface_distances(&g.means, &scene);
-        let sum =
-            profuse_metrics::surface::summarize(&d, profuse_metrics::surface::scene_extent(&scene));
+        let d =
+            profuse_metrics::surface::surface_distances(&g.means, |x| scene.distance_to_surface(x));
+        let extent = profuse_metrics::surface::scene_extent(scene.room_size);
+        let sum = profuse_metrics::surface::summarize(&d, extent);
         s.insert("init_median_surface_dist_rel".into(), json!(sum.median_rel));
         s.insert(
             "init_surface".into(),
@@ -68,7 +71,8 @@ pub fn evaluate(p: &Paths) -> Result<BTreeMap<String, Value>> {
             .filter(|(_, f)| f.is_file())
             .collect();
         if !present.is_empty() {
-            let truth = profuse_metrics::scannet::read_ground_truth(&mesh)
+            let m = Mesh::read(&mesh).map_err(stage_err("evaluate"))?;
+            let truth = profuse_metrics::scannet::ground_truth_labels(&m, mesh.display())
                 .map_err(stage_err("evaluate"))?;
             for (set, file) in present {
                 let pred = VertexLabels::read(file).map_err(stage_err("evaluate"))?;

@@ -41,6 +41,7 @@
 //! # Ok::<(), profuse_pipeline::PipelineError>(())
 //! ```
 
+pub mod cli;
 pub mod config;
 pub mod demo;
 mod error;

@@ -572,7 +572,7 @@ fn query_prompts(config: &Config, p: &Paths) -> Result<Vec<String>> {
         None => prompts
             .names
             .iter()
-            .filter(|n| !profuse_query::CANONICAL_NEGATIVES.contains(&n.as_str()))
+            .filter(|n| !profuse_formats::label_space::CANONICAL_NEGATIVES.contains(&n.as_str()))
             .cloned()
             .collect(),
     })

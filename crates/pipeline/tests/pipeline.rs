@@ -174,7 +174,10 @@ fn missing_inputs_and_bad_parameters_name_the_file_or_key_and_write_nothing() {
     let mut cfg = tiny_config();
     cfg.warp_graph.tau_iou = 1.5;
     let e = run(dir.path(), &cfg, &RunOptions::default(), &|_| {}).unwrap_err();
-    assert!(e.to_string().contains("warp_graph") && e.to_string().contains("tau_iou"), "{e}");
+    assert!(
+        e.to_string().contains("warp_graph") && e.to_string().contains("tau_iou"),
+        "{e}"
+    );
     assert!(!dir.path().join("out").exists());
 
     // A stage error names the stage and, through its cause, the file.

@@ -9,7 +9,12 @@
 //!
 //! let dir = tempfile::tempdir()?;
 //! let (n, d) = (300, 8);
-//! let data: Vec<f32> = (0..n * d).map(|i| ((i * 7919 % 101) as f32 - 50.0) / 50.0).collect();
+//! // Unit rows (SPEC: descriptors are L2-normalised).
+//! let mut data: Vec<f32> = (0..n * d).map(|i| ((i * 7919 % 101) as f32 - 50.0) / 50.0).collect();
+//! for row in data.chunks_mut(d) {
+//!     let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt();
+//!     row.iter_mut().for_each(|v| *v /= norm);
+//! }
 //! let features = Features {
 //!     features: Floats::F32(data.into()),
 //!     dim: d,

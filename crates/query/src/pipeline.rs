@@ -649,16 +649,7 @@ pub fn image_stem(image_name: &str, view: usize) -> String {
 /// The name a prompt's files use: `/`, `\` and control characters become `_`; `.`, `..`
 /// and the layout's reserved folder names are refused.
 pub fn file_name_of(prompt: &str, layout: Layout) -> Result<String> {
-    let name: String = prompt
-        .chars()
-        .map(|c| {
-            if c == '/' || c == '\\' || c.is_control() {
-                '_'
-            } else {
-                c
-            }
-        })
-        .collect();
+    let name = profuse_formats::label_space::prompt_file_stem(prompt);
     if name.is_empty() || name == "." || name == ".." || layout.reserved().contains(&name.as_str())
     {
         return Err(QueryError::ReservedName {

@@ -8,8 +8,9 @@ use crate::error::{QueryError, Result};
 /// The descriptor dot product (f32, fixed summation order), shared with vertex-transfer.
 pub use profuse_pq::dot;
 
-/// Names of the canonical negatives of the LERF relevancy score (SPEC.md §4.9).
-pub const CANONICAL_NEGATIVES: [&str; 4] = ["object", "things", "stuff", "texture"];
+/// Names of the canonical negatives of the LERF relevancy score (SPEC.md §4.9), defined
+/// with the label spaces in `profuse-formats`.
+pub use profuse_formats::label_space::CANONICAL_NEGATIVES;
 
 /// Temperature of the relevancy softmax (LERF, LangSplat, Dr. Splat use 10).
 pub const RELEVANCY_TEMPERATURE: f32 = 10.0;

@@ -16,7 +16,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use profuse_formats::{Cameras, Mesh};
+use profuse_formats::label_space::NYU40_SPACE;
+use profuse_formats::{Cameras, FileKind, Mesh};
 use serde::Serialize;
 
 use crate::error::{invalid, missing, parse_err, Result};
@@ -334,6 +335,22 @@ impl MeshReport {
     }
 }
 
+/// Reads a mesh with per-vertex ground-truth labels by path, whatever its source: a mesh
+/// file (`.safetensors`, SPEC.md §4.12), a ScanNet `*.ply` ([`read_scannet_labels_ply`]),
+/// or else a NumPy export ([`read_scannet_npy`]: a directory holding one `*_vert_all.npy`,
+/// or that prefix). The ScanNet protocol's evaluators take any of these.
+pub fn read_labelled_mesh(path: impl AsRef<Path>) -> Result<Mesh> {
+    let path = path.as_ref();
+    let name = path.to_string_lossy();
+    if name.ends_with(".safetensors") {
+        Ok(Mesh::read(path)?)
+    } else if name.ends_with(".ply") {
+        Ok(read_scannet_labels_ply(path)?.0)
+    } else {
+        Ok(read_scannet_npy(path)?.0)
+    }
+}
+
 /// Reads `*_vh_clean_2.labels.ply` (vertex `x y z red green blue alpha label`, face
 /// `vertex_indices`) in raw ScanNet coordinates (see [`align_mesh`]). Colours and labels
 /// are optional, so the unlabelled `*_vh_clean_2.ply` reads too.
@@ -418,7 +435,7 @@ pub fn read_scannet_labels_ply(path: impl AsRef<Path>) -> Result<(Mesh, MeshRepo
         labels: labels.map(Into::into),
         instances: None,
         extra: BTreeMap::from([
-            ("label_space".to_string(), "nyu40".to_string()),
+            ("label_space".to_string(), NYU40_SPACE.to_string()),
             ("source".to_string(), format!("scannet:{file}")),
         ]),
     };
@@ -631,7 +648,7 @@ pub fn read_scannet_npy(dir_or_prefix: impl AsRef<Path>) -> Result<(Mesh, MeshRe
         labels: labels.map(Into::into),
         instances: instances.map(Into::into),
         extra: BTreeMap::from([
-            ("label_space".to_string(), "nyu40".to_string()),
+            ("label_space".to_string(), NYU40_SPACE.to_string()),
             ("source".to_string(), format!("scannet_npy:{file}")),
         ]),
     };

@@ -1,49 +1,5 @@
-//! The NYU40 label space used by ScanNet, so the ScanNet protocol works on synthetic
-//! scenes, and the classes the generator builds.
-
-/// The 40 NYU40 class names; class id `i` (1-based) is `NYU40[i - 1]`.
-pub const NYU40: [&str; 40] = [
-    "wall",
-    "floor",
-    "cabinet",
-    "bed",
-    "chair",
-    "sofa",
-    "table",
-    "door",
-    "window",
-    "bookshelf",
-    "picture",
-    "counter",
-    "blinds",
-    "desk",
-    "shelves",
-    "curtain",
-    "dresser",
-    "pillow",
-    "mirror",
-    "floormat",
-    "clothes",
-    "ceiling",
-    "books",
-    "refrigerator",
-    "television",
-    "paper",
-    "towel",
-    "showercurtain",
-    "box",
-    "whiteboard",
-    "person",
-    "nightstand",
-    "toilet",
-    "sink",
-    "lamp",
-    "bathtub",
-    "bag",
-    "otherstructure",
-    "otherfurniture",
-    "otherprop",
-];
+//! The classes the generator builds, as ids of the NYU40 label space
+//! ([`profuse_formats::label_space`]) so the ScanNet protocol works on synthetic scenes.
 
 /// NYU40 id of walls.
 pub const WALL: u32 = 1;
@@ -72,19 +28,10 @@ pub const FURNITURE: [u32; 7] = [CABINET, BED, CHAIR, SOFA, TABLE, BOOKSHELF, LA
 /// The room-surface classes.
 pub const ROOM: [u32; 3] = [WALL, FLOOR, CEILING];
 
-/// The NYU40 name of a class id, `None` outside 1..=40.
-pub fn class_name(id: u32) -> Option<&'static str> {
-    id.checked_sub(1)
-        .and_then(|i| NYU40.get(i as usize))
-        .copied()
-}
-
-/// The canonical negative prompts of the LERF relevancy score.
-pub const CANONICAL_NEGATIVES: [&str; 4] = ["object", "things", "stuff", "texture"];
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use profuse_formats::label_space::nyu40_name as class_name;
 
     #[test]
     fn ids_match_names() {

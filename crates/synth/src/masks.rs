@@ -6,9 +6,9 @@ use std::collections::{BTreeMap, BTreeSet};
 use profuse_formats::NO_OBJECT;
 use serde::Serialize;
 
-use crate::classes::CANONICAL_NEGATIVES;
 use crate::config::{Config, FaultModel};
 use crate::rng::{name_hash, tag, unit, Rng};
+use profuse_formats::label_space::CANONICAL_NEGATIVES;
 
 /// "No mask" in the per-view working label maps.
 const NONE: u32 = u32::MAX;

@@ -1032,7 +1032,7 @@ fn room_objects(room: [f64; 3], seed: u64) -> Vec<ObjectSpec> {
                 index: i as u32,
                 name: name.to_string(),
                 class_id,
-                class_name: classes::class_name(class_id)
+                class_name: profuse_formats::label_space::nyu40_name(class_id)
                     .unwrap_or("unknown")
                     .to_string(),
                 room: true,
@@ -1230,13 +1230,19 @@ fn place_objects(config: &Config, room: [f64; 3], first_index: u32) -> Vec<Objec
         let Some((f, shape)) = spot else { continue };
         placed.push(f);
         let n = per_class.entry(class).or_default();
-        let name = format!("{}_{}", classes::class_name(class).unwrap_or("object"), *n);
+        let name = format!(
+            "{}_{}",
+            profuse_formats::label_space::nyu40_name(class).unwrap_or("object"),
+            *n
+        );
         *n += 1;
         out.push(ObjectSpec {
             index: first_index + out.len() as u32,
             name,
             class_id: class,
-            class_name: classes::class_name(class).unwrap_or("unknown").to_string(),
+            class_name: profuse_formats::label_space::nyu40_name(class)
+                .unwrap_or("unknown")
+                .to_string(),
             room: false,
             translation: [r32(f.c[0]), r32(f.c[1]), shape.rest_height()],
             yaw: f.yaw,

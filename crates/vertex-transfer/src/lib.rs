@@ -98,6 +98,7 @@ mod error;
 mod field;
 mod job;
 pub mod kernel;
+#[cfg(feature = "oracle")]
 pub mod oracle;
 
 pub use classes::ClassSet;

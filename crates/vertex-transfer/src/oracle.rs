@@ -1,4 +1,4 @@
-//! The oracle fixture: Gaussians placed on the vertices of a labelled mesh, carrying
+//! The oracle fixture (cargo feature `oracle`, off by default): Gaussians placed on the vertices of a labelled mesh, carrying
 //! synthetic CLIP-like features of their vertex's class, so the transfer can be measured
 //! on a real mesh (ScanNet) without a real feature pipeline.
 //!
@@ -36,7 +36,7 @@ use kiddo::SquaredEuclidean;
 use rayon::prelude::*;
 
 /// The NYU40 class names; class id `i` (1-based) is `NYU40[i - 1]`.
-pub use synth::classes::NYU40;
+pub use profuse_formats::label_space::NYU40;
 
 /// How the fixture places Gaussians and makes their features.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -6,7 +6,9 @@
 //! use warp_graph::job::{self, Job};
 //!
 //! let dir = tempfile::tempdir()?;
-//! synth::generate(&synth::Config::preset(synth::Preset::Tiny, 2), dir.path())?;
+//! let mut config = synth::Config::preset(synth::Preset::Tiny, 2);
+//! config.gaussians = 2000; // ground-truth Gaussians, which the tiny preset leaves out
+//! synth::generate(&config, dir.path())?;
 //! let file = |name: &str| dir.path().join(name);
 //! let job = Job {
 //!     masks: file("masks.safetensors"),

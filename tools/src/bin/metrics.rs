@@ -17,7 +17,7 @@ use profuse_metrics::lerf::{evaluate_scene, mean_over_scenes, read_label_dir, Pr
 use profuse_metrics::mask::{
     fill_poly_as, fits_int32, rasterize_polygon, reference_vertices, OpenCvFill,
 };
-use profuse_metrics::scannet::{evaluate, read_ground_truth, ClassSet};
+use profuse_metrics::scannet::{evaluate, ground_truth_labels, ClassSet};
 use profuse_metrics::surface::{scene_extent, summarize, surface_distances_with_progress};
 use profuse_tools::{chatty, peak_rss_mb, run, warn, BoxError};
 use serde_json::{json, Map, Value};
@@ -226,7 +226,10 @@ fn path_str(p: &Path) -> String {
 
 fn scannet(pred: &Path, mesh: &Path, set: SetArg) -> Result<Value, BoxError> {
     let labels = VertexLabels::read(pred)?;
-    let truth = read_ground_truth(mesh)?;
+    let truth = ground_truth_labels(
+        &scene_io::scannet::read_labelled_mesh(mesh)?,
+        mesh.display(),
+    )?;
     let pred_labels = labels.labels.to_vec();
     let mut sets = Map::new();
     for s in set.sets() {
@@ -420,9 +423,13 @@ fn surface(gaussians: &Path, scene_path: &Path, quiet: bool) -> Result<Value, Bo
     let scene = synth::Scene::from_json(scene_path)?;
     let bar = progress_bar(chatty(quiet), g.len() as u64, "points");
     let start = Instant::now();
-    let d = surface_distances_with_progress(&g.means, &scene, |n| bar.inc(n as u64));
+    let d = surface_distances_with_progress(
+        &g.means,
+        |p| scene.distance_to_surface(p),
+        |n| bar.inc(n as u64),
+    );
     bar.finish_and_clear();
-    let summary = summarize(&d, scene_extent(&scene));
+    let summary = summarize(&d, scene_extent(scene.room_size));
     let mut v = serde_json::to_value(&summary)?;
     if let Some(obj) = v.as_object_mut() {
         obj.insert("gaussians_file".into(), path_str(gaussians).into());
@@ -555,9 +562,9 @@ fn bench(
         })
         .collect();
     let t = Instant::now();
-    let d = surface_distances_with_progress(&pts, &scene, |_| {});
+    let d = surface_distances_with_progress(&pts, |p| scene.distance_to_surface(p), |_| {});
     let surface_s = t.elapsed().as_secs_f64();
-    let median = summarize(&d, scene_extent(&scene)).median;
+    let median = summarize(&d, scene_extent(scene.room_size)).median;
 
     let rate = |n: usize, s: f64| if s > 0.0 { n as f64 / s } else { f64::NAN };
     Ok(json!({

@@ -1,31 +1,21 @@
-//! `profuse`: the umbrella command of the ProFuse pipeline.
-//!
-//! * `profuse inspect FILE` prints a JSON report of any ProFuse file (SPEC.md §5) and exits
-//!   1 when the file is invalid.
-//! * `profuse run SCENE_DIR` runs every stage (gs-init, warp-graph, fuse, pq, query,
-//!   vertex-transfer) with up-to-date checks, prints a timing table in the paper's Table 4
-//!   shape on stderr and a JSON summary on stdout.
-//! * `profuse demo` generates the synthetic demo scene, runs the pipeline and its
-//!   `--no-proposals` baseline, and prints the selection and ScanNet-style scores.
-//! * `profuse sweep` repeats the demo's experiment over seeds and synth fault sets and
-//!   prints one row per (fault set, seed) and the means.
-//!
-//! The experiments live in `profuse_pipeline::{demo, sweep}`; this tool parses arguments
-//! and displays progress.
+//! `profuse`: the umbrella command of the ProFuse pipeline: `inspect` (SPEC.md §5 report of
+//! any file), `run` (every stage with up-to-date checks), `demo` (the paper's experiment
+//! against the `--no-proposals` baseline on a synth scene) and `sweep` (the demo over
+//! seeds and fault sets). The work lives in `profuse_pipeline` (`cli`, `demo`, `sweep`);
+//! this tool parses arguments, displays progress and prints.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::Mutex;
 
 use clap::{Args, Parser, Subcommand};
-use indicatif::{ProgressBar, ProgressStyle};
-use profuse_pipeline::config::Config;
+use profuse_pipeline::cli;
 use profuse_pipeline::demo::{self, DemoOptions};
 use profuse_pipeline::sweep::{self, SweepEvent, SweepOptions};
-use profuse_pipeline::{evaluate::evaluate_run, run as run_pipeline, Event, Paths, RunOptions};
-use profuse_tools::{chatty, run, BoxError};
-use serde_json::{json, Value};
+use profuse_pipeline::RunOptions;
+use profuse_tools::stages::StageBars;
+use profuse_tools::{chatty, print_result, run, BoxError};
+use serde_json::Value;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -93,9 +83,10 @@ enum Command {
         /// sparse-views; see `synth --help`).
         #[arg(long, value_name = "LIST", default_value = "default")]
         faults: String,
-        /// The synth preset of every scene.
-        #[arg(long, value_enum, default_value = "demo")]
-        preset: PresetArg,
+        /// The synth preset of every scene: `tiny` (4 views at 64x48, D = 64; set `pq.m` to
+        /// a divisor of 64) or `demo` (the demo scene).
+        #[arg(long, default_value = "demo", value_parser = preset)]
+        preset: synth::Preset,
         /// Print one JSON object {rows, summary} instead of the table.
         #[arg(long)]
         json: bool,
@@ -121,29 +112,21 @@ enum Command {
     },
 }
 
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-enum PresetArg {
-    /// 4 views at 64x48, D = 64 (seconds; set `pq.m` to a divisor of 64, e.g. 16).
-    Tiny,
-    /// 24 views at 320x240, 10 objects, D = 512 (the demo scene).
-    Demo,
-}
-
-impl PresetArg {
-    fn preset(self) -> synth::Preset {
-        match self {
-            PresetArg::Tiny => synth::Preset::Tiny,
-            PresetArg::Demo => synth::Preset::Demo,
-        }
+/// The synth presets an experiment runs on (see the argument help).
+fn preset(name: &str) -> Result<synth::Preset, String> {
+    match name {
+        "tiny" | "demo" => synth::Preset::parse(name).map_err(|e| e.to_string()),
+        other => Err(format!("expected tiny or demo, got {other:?}")),
     }
 }
 
 /// The synthetic scene of `demo`.
 #[derive(Args, Debug)]
 struct SceneArgs {
-    /// The synth preset.
-    #[arg(long, value_enum, default_value = "demo")]
-    preset: PresetArg,
+    /// The synth preset: `tiny` (4 views at 64x48, D = 64; set `pq.m` to a divisor of 64)
+    /// or `demo` (24 views at 320x240, 10 objects, D = 512).
+    #[arg(long, default_value = "demo", value_parser = preset)]
+    preset: synth::Preset,
     /// The synth fault set applied on top of the preset (see `synth --help`).
     #[arg(long, value_name = "NAME", default_value = "default",
           value_parser = clap::builder::PossibleValuesParser::new(synth::FaultSet::NAMES))]
@@ -184,7 +167,7 @@ fn main() -> ExitCode {
             scene,
             json,
             common,
-        } => demo(out, seed, &scene, json, &common),
+        } => print_result(demo(out, seed, &scene, json, &common)),
         Command::Sweep {
             seeds,
             faults,
@@ -195,25 +178,17 @@ fn main() -> ExitCode {
             config,
             set,
             quiet,
-        } => {
-            let opts = (|| -> Result<SweepOptions, BoxError> {
-                Ok(SweepOptions {
-                    seeds: sweep::parse_seeds(&seeds)?,
-                    faults: sweep::parse_fault_sets(&faults)?,
-                    preset: preset.preset(),
-                    out,
-                    keep,
-                    config: demo_config(config.as_deref(), &set)?,
-                })
-            })();
-            match opts {
-                Ok(opts) => run_sweep(&opts, json, quiet),
-                Err(e) => {
-                    profuse_tools::report_error(&*e);
-                    ExitCode::FAILURE
-                }
-            }
-        }
+        } => print_result((|| {
+            let opts = SweepOptions {
+                seeds: sweep::parse_seeds(&seeds)?,
+                faults: sweep::parse_fault_sets(&faults)?,
+                preset,
+                out,
+                keep,
+                config: cli::demo_config(config.as_deref(), &set)?,
+            };
+            run_sweep(&opts, json, quiet)
+        })()),
     }
 }
 
@@ -232,145 +207,28 @@ fn inspect(file: &Path) -> ExitCode {
     }
 }
 
-/// The configuration from --config and --set.
-fn load_config(common: &Common) -> Result<Config, BoxError> {
-    let base = match &common.config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .map_err(|e| format!("{}: cannot read the configuration: {e}", path.display()))?;
-            Config::from_toml(&text, &path.display().to_string())?
-        }
-        None => Config::default(),
-    };
-    Ok(base.with_overrides(&common.set)?)
-}
-
-/// Progress display: one bar per running stage on stderr.
-struct Display {
-    on: bool,
-    bar: Mutex<Option<ProgressBar>>,
-}
-
-impl Display {
-    fn new(on: bool) -> Self {
-        Display {
-            on,
-            bar: Mutex::new(None),
-        }
+fn run_options(common: &Common) -> RunOptions {
+    RunOptions {
+        out: common.out_dir.clone(),
+        force: common.force,
     }
-
-    fn event(&self, e: Event<'_>) {
-        if !self.on {
-            return;
-        }
-        let Ok(mut bar) = self.bar.lock() else {
-            return;
-        };
-        match e {
-            Event::Start { stage, reason } => {
-                let b = ProgressBar::new(0);
-                b.set_style(
-                    ProgressStyle::with_template("{prefix:>16} [{bar:30}] {pos}/{len} {msg}")
-                        .unwrap_or_else(|_| ProgressStyle::default_bar())
-                        .progress_chars("=> "),
-                );
-                b.set_prefix(stage.to_string());
-                b.set_message(format!("({reason})"));
-                *bar = Some(b);
-            }
-            Event::Progress { done, total } => {
-                if let Some(b) = bar.as_ref() {
-                    b.set_length(total);
-                    b.set_position(done);
-                }
-            }
-            Event::Done {
-                stage,
-                ran,
-                seconds,
-            } => {
-                if let Some(b) = bar.take() {
-                    b.finish_and_clear();
-                }
-                if ran {
-                    eprintln!("{stage:>16} done in {seconds:.2} s");
-                } else {
-                    eprintln!("{stage:>16} up to date");
-                }
-            }
-        }
-    }
-}
-
-/// The timing table in the shape of the paper's Table 4.
-fn print_timing(t: &std::collections::BTreeMap<String, f64>) {
-    let get = |k: &str| t.get(k).copied().unwrap_or(0.0);
-    eprintln!();
-    eprintln!(
-        "{:<12} {:>10} {:>10} {:>10} {:>10}",
-        "", "Geometry", "Semantics", "Total", "Indexing"
-    );
-    eprintln!(
-        "{:<12} {:>9.2}s {:>9.2}s {:>9.2}s {:>9.2}s   (PQ)",
-        "ProFuse-rs",
-        get("geometry"),
-        get("semantics"),
-        get("total"),
-        get("indexing")
-    );
-    eprintln!(
-        "{:<12} gs-init {:.2} s; warp-graph {:.2} s + fuse {:.2} s; evaluation outputs (query, vertex-transfer) {:.2} s",
-        "",
-        get("gs-init"),
-        get("warp-graph"),
-        get("fuse") + get("fuse_baseline"),
-        get("evaluation")
-    );
 }
 
 fn run_scene(scene: &Path, common: &Common) -> Result<Value, BoxError> {
-    let config = load_config(common)?;
-    let display = Display::new(chatty(common.quiet));
-    let opts = RunOptions {
-        out: common.out_dir.clone(),
-        force: common.force,
-    };
-    let summary = run_pipeline(scene, &config, &opts, &|e| display.event(e))?;
-    let paths = Paths::new(scene, &summary.out, config.fuse.no_proposals);
-    let scores = evaluate_run(&paths, &config, &summary)?;
-    if chatty(common.quiet) {
-        print_timing(&summary.timing_s);
-    }
-    let mut value = serde_json::to_value(&summary)?;
-    if let Value::Object(map) = &mut value {
-        map.insert("metrics".into(), json!(scores));
-        map.insert("config".into(), json!(summary.out.join("config.toml")));
-    }
-    write_json(
-        &summary.out.join(format!("summary{}.json", paths.suffix)),
-        &value,
-    )?;
+    let config = cli::run_config(common.config.as_deref(), &common.set)?;
+    let bars = StageBars::new(chatty(common.quiet));
+    let value = cli::run_and_record(scene, &config, &run_options(common), &|e| bars.event(e))?;
+    print_timing(common.quiet, &value);
     Ok(value)
 }
 
-fn write_json(path: &Path, value: &Value) -> Result<(), BoxError> {
-    profuse_tools::write_file(path, &serde_json::to_vec_pretty(value)?)
-}
-
-/// The demo's configuration: DEMO_SETTINGS, then the keys of --config, then --set.
-fn demo_config(config: Option<&Path>, set: &[String]) -> Result<Config, BoxError> {
-    let text = match config {
-        Some(path) => Some(
-            std::fs::read_to_string(path)
-                .map_err(|e| format!("{}: cannot read the configuration: {e}", path.display()))?,
-        ),
-        None => None,
-    };
-    let label = config.map(|p| p.display().to_string()).unwrap_or_default();
-    Ok(demo::demo_config(
-        text.as_deref().map(|t| (t, label.as_str())),
-        set,
-    )?)
+/// The paper's Table 4 on stderr, from a summary's `timing_s`, unless quiet.
+fn print_timing(quiet: bool, summary: &Value) {
+    if chatty(quiet) {
+        if let Ok(timing) = serde_json::from_value(summary["timing_s"].clone()) {
+            eprintln!("{}", cli::timing_table(&timing));
+        }
+    }
 }
 
 fn demo(
@@ -379,95 +237,60 @@ fn demo(
     scene: &SceneArgs,
     as_json: bool,
     common: &Common,
-) -> ExitCode {
-    let body = || -> Result<Value, BoxError> {
-        let show = chatty(common.quiet);
-        let opts = DemoOptions {
-            scene: out,
-            seed,
-            preset: scene.preset.preset(),
-            faults: synth::FaultSet::parse(&scene.faults)?,
-            config: demo_config(common.config.as_deref(), &common.set)?,
-            run: RunOptions {
-                out: common.out_dir.clone(),
-                force: common.force,
-            },
-        };
-        let display = Display::new(show);
-        let value = demo::run_demo(&opts, &|e| display.event(e), &|msg| {
-            if show {
-                eprintln!("{msg}");
-            }
-        })?;
-        if show {
-            if let Ok(timing) = serde_json::from_value(value["timing_s"].clone()) {
-                print_timing(&timing);
-            }
-        }
-        Ok(value)
+) -> Result<String, BoxError> {
+    let show = chatty(common.quiet);
+    let opts = DemoOptions {
+        scene: out,
+        seed,
+        preset: scene.preset,
+        faults: synth::FaultSet::parse(&scene.faults)?,
+        config: cli::demo_config(common.config.as_deref(), &common.set)?,
+        run: run_options(common),
     };
-    match body() {
-        Ok(value) => {
-            let text = if as_json {
-                serde_json::to_string_pretty(&value).unwrap_or_default()
-            } else {
-                demo::demo_text(&value)
-            };
-            if writeln!(std::io::stdout().lock(), "{text}").is_err() {
-                return ExitCode::FAILURE;
-            }
-            ExitCode::SUCCESS
+    let bars = StageBars::new(show);
+    let value = demo::run_demo(&opts, &|e| bars.event(e), &|msg| {
+        if show {
+            eprintln!("{msg}");
         }
-        Err(e) => {
-            profuse_tools::report_error(&*e);
-            ExitCode::FAILURE
-        }
-    }
+    })?;
+    print_timing(common.quiet, &value);
+    Ok(if as_json {
+        serde_json::to_string_pretty(&value)?
+    } else {
+        demo::demo_text(&value)
+    })
 }
 
-fn run_sweep(opts: &SweepOptions, as_json: bool, quiet: bool) -> ExitCode {
+fn run_sweep(opts: &SweepOptions, as_json: bool, quiet: bool) -> Result<String, BoxError> {
     let show = chatty(quiet);
     let events = |e: SweepEvent<'_>| {
-        if !show {
-            return;
-        }
         match e {
-            SweepEvent::RowStart {
-                index,
-                total,
-                seed,
-                faults,
-                elapsed,
-            } => eprintln!("row {index}/{total}: seed {seed}, faults {faults} ({elapsed:.0} s elapsed)"),
-            SweepEvent::RowDone {
-                index,
-                total,
-                row,
-                elapsed,
-            } => eprintln!(
-                "row {index}/{total} done in {:.1} s: LERF mIoU {:.2} vs {:.2} ({elapsed:.0} s elapsed)",
-                row.seconds, row.lerf_miou, row.baseline_lerf_miou
-            ),
-        }
-    };
-    match sweep::sweep(opts, &events) {
-        Ok(report) => {
-            if show && opts.keep {
-                eprintln!("scenes kept under {}", sweep::parent_dir(opts).display());
-            }
-            let text = if as_json {
-                serde_json::to_string_pretty(&report).unwrap_or_default()
-            } else {
-                sweep::text_table(&report)
-            };
-            if writeln!(std::io::stdout().lock(), "{text}").is_err() {
-                return ExitCode::FAILURE;
-            }
-            ExitCode::SUCCESS
-        }
-        Err(e) => {
-            profuse_tools::report_error(&e);
-            ExitCode::FAILURE
-        }
+        _ if !show => {}
+        SweepEvent::RowStart {
+            index,
+            total,
+            seed,
+            faults,
+            elapsed,
+        } => eprintln!("row {index}/{total}: seed {seed}, faults {faults} ({elapsed:.0} s elapsed)"),
+        SweepEvent::RowDone {
+            index,
+            total,
+            row,
+            elapsed,
+        } => eprintln!(
+            "row {index}/{total} done in {:.1} s: LERF mIoU {:.2} vs {:.2} ({elapsed:.0} s elapsed)",
+            row.seconds, row.lerf_miou, row.baseline_lerf_miou
+        ),
     }
+    };
+    let report = sweep::sweep(opts, &events)?;
+    if show && opts.keep {
+        eprintln!("scenes kept under {}", sweep::parent_dir(opts).display());
+    }
+    Ok(if as_json {
+        serde_json::to_string_pretty(&report)?
+    } else {
+        sweep::text_table(&report)
+    })
 }
