@@ -2,6 +2,7 @@
 
 use std::collections::BTreeMap;
 
+use crate::camera;
 use crate::check::{check_finite, check_len, invalid, out_of_range, TensorReader};
 use crate::container::{Buffer, Container};
 use crate::error::Result;
@@ -44,31 +45,21 @@ impl Cameras {
 
     /// Rotation and translation of view `v`.
     pub fn pose(&self, v: usize) -> Pose {
-        let m = &self.world_to_camera[v];
-        (
-            [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
-            [m[3], m[7], m[11]],
-        )
+        camera::pose_from_row(&self.world_to_camera[v])
     }
 
     /// Camera centre of view `v` in world coordinates (−Rᵀt).
     pub fn center(&self, v: usize) -> [f64; 3] {
         let (r, t) = self.pose(v);
-        let mut c = [0.0; 3];
-        for (i, ci) in c.iter_mut().enumerate() {
-            *ci = -(r[0][i] * t[0] + r[1][i] * t[1] + r[2][i] * t[2]);
-        }
-        c
+        camera::camera_centre(&r, &t)
     }
 
     /// Projects a world point into view `v` (pinhole, no distortion): pixel x, y and depth.
     pub fn project(&self, v: usize, p: [f64; 3]) -> [f64; 3] {
         let (r, t) = self.pose(v);
-        let cam: Vec<f64> = (0..3)
-            .map(|i| r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2] + t[i])
-            .collect();
-        let [fx, fy, cx, cy] = self.intrinsics[v];
-        [fx * cam[0] / cam[2] + cx, fy * cam[1] / cam[2] + cy, cam[2]]
+        let c = camera::world_to_camera(&r, &t, p);
+        let [u, w] = camera::project(&self.intrinsics[v], c);
+        [u, w, c[2]]
     }
 }
 

@@ -20,6 +20,10 @@
 //! enum, [`FormatError`], whose variants name file, tensor and expectation; its
 //! [`FormatError::code`] is shared with the Python reader.
 //!
+//! Two small modules hold the math every stage shares, so that it exists once: [`camera`]
+//! (SPEC.md §3.3's poses, projection, pixel centres, grid intrinsics and lens model, and
+//! the SH DC colour rule of §4.2) and [`rng`] (the workspace's seeded SplitMix64).
+//!
 //! # Example: a round trip
 //!
 //! ```
@@ -45,6 +49,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod camera;
 mod cameras;
 mod check;
 mod container;
@@ -62,6 +67,7 @@ mod mesh;
 mod pq;
 mod prompts;
 mod proposals;
+pub mod rng;
 pub mod samples;
 mod selection;
 mod topk;

@@ -4,6 +4,7 @@
 use std::time::Instant;
 
 use profuse_formats::label_space::CANONICAL_NEGATIVES;
+use profuse_formats::rng::SplitMix64;
 use profuse_formats::{f16, Features, Floats, Prompts};
 use profuse_query::{
     activation, score_prompts, select, ActiveSet, Descriptors, Membership, Rule, ScoreKind,
@@ -51,7 +52,7 @@ pub fn run(a: &Params) -> Result<Value, BoxError> {
         return Err(format!("--dim {} must be a positive multiple of --m {}", a.dim, a.m).into());
     }
     let d = a.dim;
-    let mut rng = SplitMix(0x9e37_79b9);
+    let mut rng = SplitMix(SplitMix64::new(0x9e37_79b9));
     // Prompts: random unit vectors, plus the four canonical negatives for relevancy.
     let mut names: Vec<String> = (0..a.prompts).map(|i| format!("prompt_{i}")).collect();
     names.extend(CANONICAL_NEGATIVES.map(String::from));
@@ -195,20 +196,16 @@ fn random_pq(
     Ok(book.to_pq(codes, norms, vec![1u8; n]))
 }
 
-/// SplitMix64: a tiny seeded generator for benchmark data.
-struct SplitMix(u64);
+/// The workspace's SplitMix64 with Box–Muller normals, for benchmark data.
+struct SplitMix(SplitMix64);
 
 impl SplitMix {
     fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
 
     fn uniform(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
+        self.0.unit()
     }
 
     /// A standard normal sample (Box-Muller).

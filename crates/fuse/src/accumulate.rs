@@ -803,16 +803,9 @@ mod tests {
 
     use std::collections::BTreeMap;
 
-    use super::*;
+    use profuse_formats::rng::SplitMix64;
 
-    /// SplitMix64.
-    fn rng(state: &mut u64) -> u64 {
-        *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = *state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
+    use super::*;
 
     /// Random views with many distinct (Gaussian, group) pairs per tile (so tile tables
     /// flush), ids over several blocks, unlabelled and ungrouped pixels, padded slots:
@@ -828,10 +821,10 @@ mod tests {
         let mut acc = Accumulator::new(n, mask_group.len(), 6);
         let mut w_ref: BTreeMap<(u32, u32), u128> = BTreeMap::new();
         let mut mass_ref = vec![0u128; mask_group.len()];
-        let mut state = 7;
+        let mut state = SplitMix64::new(7);
         for v in 0..views {
             let labels: Vec<u16> = (0..w * h)
-                .map(|_| match rng(&mut state) % 7 {
+                .map(|_| match state.next_u64() % 7 {
                     6 => u16::MAX,
                     l => (l % masks_per_view as u64) as u16,
                 })
@@ -839,10 +832,10 @@ mod tests {
             let mut ids = vec![NO_GAUSSIAN; w * h * k];
             let mut weights = vec![0f32; w * h * k];
             for px in 0..w * h {
-                let filled = (rng(&mut state) % (k as u64 + 1)) as usize;
+                let filled = (state.next_u64() % (k as u64 + 1)) as usize;
                 for t in 0..filled {
-                    ids[px * k + t] = (rng(&mut state) % n as u64) as u32;
-                    weights[px * k + t] = (rng(&mut state) % 1000) as f32 / 1024.0;
+                    ids[px * k + t] = (state.next_u64() % n as u64) as u32;
+                    weights[px * k + t] = (state.next_u64() % 1000) as f32 / 1024.0;
                 }
             }
             let offset = (v * masks_per_view) as u32;
@@ -908,8 +901,8 @@ mod tests {
             4.0,
             1e30,
         ];
-        let mut state = 3;
-        ws.extend((0..100_000).map(|_| f32::from_bits(rng(&mut state) as u32)));
+        let mut state = SplitMix64::new(3);
+        ws.extend((0..100_000).map(|_| f32::from_bits(state.next_u64() as u32)));
         for w in ws {
             let reference = (f64::from(w) * WEIGHT_SCALE) as u64;
             assert_eq!(quantise(w), reference, "{w:e}");

@@ -297,14 +297,7 @@ pub fn grid_camera(
     width: u32,
     height: u32,
 ) -> splat_raster::Result<ViewCamera> {
-    let mut cam = ViewCamera::from_cameras(cameras, view)?;
-    let sx = f64::from(width) / f64::from(cam.width);
-    let sy = f64::from(height) / f64::from(cam.height);
-    let [fx, fy, cx, cy] = cam.intrinsics;
-    cam.intrinsics = [fx * sx, fy * sy, cx * sx, cy * sy];
-    cam.width = width;
-    cam.height = height;
-    Ok(cam)
+    Ok(ViewCamera::from_cameras(cameras, view)?.at_grid(width, height))
 }
 
 /// Completes a view's report with the accumulator's state after it was merged, and adds

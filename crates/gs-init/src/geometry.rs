@@ -2,7 +2,7 @@
 //! triangulation in normalised coordinates, and the rejection gates.
 
 use nalgebra::Matrix4;
-use profuse_formats::Cameras;
+use profuse_formats::{camera, Cameras};
 use serde::Serialize;
 
 /// A posed pinhole view (SPEC.md §3.3): `x_cam = R x_world + t`, pixel centres at +0.5,
@@ -33,8 +33,7 @@ impl View {
 
     /// Camera centre in world coordinates (−Rᵀt).
     pub fn center(&self) -> [f64; 3] {
-        let (r, t) = (&self.rotation, &self.translation);
-        std::array::from_fn(|i| -(r[0][i] * t[0] + r[1][i] * t[1] + r[2][i] * t[2]))
+        camera::camera_centre(&self.rotation, &self.translation)
     }
 
     /// The optical axis (camera z) in world coordinates.
@@ -44,10 +43,7 @@ impl View {
 
     /// Camera coordinates of a world point.
     pub fn to_camera(&self, p: [f64; 3]) -> [f64; 3] {
-        let r = &self.rotation;
-        std::array::from_fn(|i| {
-            r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2] + self.translation[i]
-        })
+        camera::world_to_camera(&self.rotation, &self.translation, p)
     }
 
     /// Mean focal length in pixels.
@@ -57,8 +53,7 @@ impl View {
 
     /// Undistorted normalised image coordinates (x/z, y/z) of a pixel position.
     pub fn normalise(&self, pixel: [f64; 2]) -> [f64; 2] {
-        let [fx, fy, cx, cy] = self.intrinsics;
-        let d = [(pixel[0] - cx) / fx, (pixel[1] - cy) / fy];
+        let d = camera::pixel_to_normalised(&self.intrinsics, pixel);
         if self.distortion == [0.0; 4] {
             d
         } else {
@@ -71,28 +66,24 @@ impl View {
     pub fn project(&self, p: [f64; 3]) -> [f64; 3] {
         let c = self.to_camera(p);
         let n = distort([c[0] / c[2], c[1] / c[2]], self.distortion);
-        let [fx, fy, cx, cy] = self.intrinsics;
-        [fx * n[0] + cx, fy * n[1] + cy, c[2]]
+        let [u, v] = camera::normalised_to_pixel(&self.intrinsics, n);
+        [u, v, c[2]]
     }
 }
 
-/// OpenCV radial-tangential model on normalised coordinates.
+/// OpenCV radial-tangential model on normalised coordinates ([`camera::distort`]); the
+/// identity, bit for bit, for a pinhole view.
 pub fn distort(n: [f64; 2], k: [f64; 4]) -> [f64; 2] {
     if k == [0.0; 4] {
         return n;
     }
-    let [k1, k2, p1, p2] = k;
-    let (x, y) = (n[0], n[1]);
-    let r2 = x * x + y * y;
-    let radial = 1.0 + k1 * r2 + k2 * r2 * r2;
-    [
-        x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-        y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
-    ]
+    camera::distort(&k, n)
 }
 
 /// Inverse of [`distort`] by fixed-point iteration (OpenCV's `undistortPoints` scheme),
-/// run until the step is below 1e-14 or 50 iterations.
+/// run until the step is below 1e-14 or 50 iterations. Not [`camera::undistort`] (Newton,
+/// rejecting points beyond the fold): that one would move the triangulated points of
+/// distorted scenes, so gs-init keeps OpenCV's scheme.
 pub fn undistort(d: [f64; 2], k: [f64; 4]) -> [f64; 2] {
     let [k1, k2, p1, p2] = k;
     let mut n = d;

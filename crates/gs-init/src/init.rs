@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
-use profuse_formats::{Cameras, Gaussians, Matches, SparseMatches, WarpCoords};
+use profuse_formats::{camera, Cameras, Gaussians, Matches, SparseMatches, WarpCoords};
 use rayon::prelude::*;
 
 use crate::error::{InitError, Result};
@@ -14,11 +14,11 @@ use crate::geometry::{norm, sub, triangulate_normalised, Gates, Reason, Triangul
 use crate::images::{ImageSource, ViewImage};
 use crate::params::{Params, Scale};
 use crate::report::{median, ReferenceReport, Rejected, Report};
-use crate::rng::{purpose, sample, Rng};
+use crate::rng::{keyed, purpose, sample, Rng};
 use crate::select::{nearest_views, pose_features, select_references};
 
 /// SH degree-0 constant: colour = C0 · dc + 0.5.
-pub const SH_C0: f64 = 0.282_094_791_773_878_14;
+pub use profuse_formats::camera::SH_C0;
 /// Smallest mean squared neighbour distance of the k-NN scale rule (3DGS's clamp).
 pub const MIN_KNN_DIST2: f64 = 1e-7;
 
@@ -294,7 +294,7 @@ struct RefContext<'a> {
 
 impl RefContext<'_> {
     fn rng(&self) -> Rng {
-        Rng::keyed(&[self.params.seed, purpose::SAMPLE, self.job.reference as u64])
+        keyed(&[self.params.seed, purpose::SAMPLE, self.job.reference as u64])
     }
 
     fn dense(&self, m: &Matches) -> RefOutput {
@@ -507,7 +507,10 @@ fn assemble(
         opacity_logits: vec![0.0; points.len()].into(),
         sh_dc: points
             .iter()
-            .map(|p| p.colour.map(|c| ((f64::from(c) - 0.5) / SH_C0) as f32))
+            .map(|p| {
+                p.colour
+                    .map(|c| camera::colour_to_sh_dc(f64::from(c)) as f32)
+            })
             .collect::<Vec<_>>()
             .into(),
         sh_degree: 0,

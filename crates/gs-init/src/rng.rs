@@ -1,12 +1,9 @@
 //! SplitMix64 streams keyed by (seed, purpose, index): every random decision depends only
-//! on its key, never on thread scheduling or on a third-party RNG's version.
+//! on its key, never on thread scheduling or on a third-party RNG's version. The generator
+//! is the workspace's ([`profuse_formats::rng`]); the keying is gs-init's own (the written
+//! Gaussians depend on it).
 
-/// SplitMix64's finaliser (a bijection on u64 with good avalanche).
-const fn mix(mut z: u64) -> u64 {
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
+use profuse_formats::rng::{splitmix64_mix as mix, SplitMix64};
 
 /// Purposes, so that streams of different decisions never coincide.
 pub(crate) mod purpose {
@@ -15,32 +12,14 @@ pub(crate) mod purpose {
 }
 
 /// A SplitMix64 generator.
-#[derive(Debug, Clone)]
-pub(crate) struct Rng(u64);
+pub(crate) type Rng = SplitMix64;
 
-impl Rng {
-    /// The stream of a key.
-    pub fn keyed(parts: &[u64]) -> Rng {
-        let state = parts
-            .iter()
-            .fold(0x6A09_E667_F3BC_C908u64, |h, p| mix(h ^ mix(*p)));
-        Rng(state)
-    }
-
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        mix(self.0)
-    }
-
-    /// Uniform in [0, 1) with 53 random bits.
-    pub fn unit(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-
-    /// Uniform integer in [0, n) (Lemire's multiply-high; bias below 2^-64 · n).
-    pub fn below(&mut self, n: usize) -> usize {
-        ((u128::from(self.next_u64()) * n as u128) >> 64) as usize
-    }
+/// The stream of a key.
+pub(crate) fn keyed(parts: &[u64]) -> Rng {
+    let state = parts
+        .iter()
+        .fold(0x6A09_E667_F3BC_C908u64, |h, p| mix(h ^ mix(*p)));
+    SplitMix64::new(state)
 }
 
 /// `budget` distinct indices of `0..n` chosen uniformly (partial Fisher–Yates), sorted;
@@ -65,9 +44,9 @@ mod tests {
 
     #[test]
     fn sampling_is_distinct_sorted_and_keyed() {
-        let a = sample(1000, 100, &mut Rng::keyed(&[0, 1, 2]));
-        let b = sample(1000, 100, &mut Rng::keyed(&[0, 1, 2]));
-        let c = sample(1000, 100, &mut Rng::keyed(&[0, 1, 3]));
+        let a = sample(1000, 100, &mut keyed(&[0, 1, 2]));
+        let b = sample(1000, 100, &mut keyed(&[0, 1, 2]));
+        let c = sample(1000, 100, &mut keyed(&[0, 1, 3]));
         assert_eq!(a, b);
         assert_ne!(a, c);
         assert_eq!(a.len(), 100);
@@ -75,12 +54,12 @@ mod tests {
         // Roughly uniform: the mean index is near the middle.
         let mean = a.iter().sum::<usize>() as f64 / 100.0;
         assert!((mean - 500.0).abs() < 100.0, "{mean}");
-        assert_eq!(sample(5, 10, &mut Rng::keyed(&[1])), vec![0, 1, 2, 3, 4]);
+        assert_eq!(sample(5, 10, &mut keyed(&[1])), vec![0, 1, 2, 3, 4]);
     }
 
     #[test]
     fn below_stays_in_range_and_unit_in_unit_interval() {
-        let mut r = Rng::keyed(&[9]);
+        let mut r = keyed(&[9]);
         for n in [1usize, 2, 7, 1000] {
             for _ in 0..1000 {
                 assert!(r.below(n) < n);

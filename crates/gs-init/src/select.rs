@@ -9,7 +9,7 @@
 //! weighs like the difference between two viewing directions about 60° apart.
 
 use crate::geometry::View;
-use crate::rng::{purpose, Rng};
+use crate::rng::{keyed, purpose, Rng};
 
 /// Independent k-means runs; the one with the smallest inertia wins (scikit-learn's
 /// `n_init = 10`, as in EDGS).
@@ -115,7 +115,7 @@ pub fn kmeans(points: &[PoseFeature], k: usize, seed: u64) -> Vec<PoseFeature> {
     }
     let mut best: Option<(f64, Vec<PoseFeature>)> = None;
     for run in 0..KMEANS_RESTARTS {
-        let mut rng = Rng::keyed(&[seed, purpose::KMEANS, run]);
+        let mut rng = keyed(&[seed, purpose::KMEANS, run]);
         let (inertia, centroids) = lloyd(points, seeds_plus_plus(points, k, &mut rng));
         if best.as_ref().is_none_or(|(b, _)| inertia < *b) {
             best = Some((inertia, centroids));

@@ -15,31 +15,16 @@ use synth::{Camera, Config, Preset, Scene};
 // ---------------------------------------------------------------- helpers
 
 fn view_of(c: &Camera) -> View {
-    let m = c.world_to_camera();
     View {
-        rotation: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
-        translation: [m[3], m[7], m[11]],
+        rotation: c.rotation,
+        translation: c.translation,
         intrinsics: c.intrinsics,
         distortion: [0.0; 4],
     }
 }
 
 fn cameras_of(cams: &[Camera]) -> Cameras {
-    Cameras {
-        image_names: (0..cams.len()).map(|i| format!("v{i}.png")).collect(),
-        image_size: cams
-            .iter()
-            .map(|c| [c.width, c.height])
-            .collect::<Vec<_>>()
-            .into(),
-        intrinsics: cams.iter().map(|c| c.intrinsics).collect::<Vec<_>>().into(),
-        world_to_camera: cams
-            .iter()
-            .map(Camera::world_to_camera)
-            .collect::<Vec<_>>()
-            .into(),
-        ..Default::default()
-    }
+    synth::cameras_table(cams, (0..cams.len()).map(|i| format!("v{i}.png")).collect())
 }
 
 fn pixel(v: &View, p: [f64; 3]) -> [f64; 2] {

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use image::ExtendedColorType;
 use profuse_formats::{
-    format_float, Cameras, Features, FileKind, Gaussians, Pq, Prompts, Selection,
+    camera, format_float, Cameras, Features, FileKind, Gaussians, Pq, Prompts, Selection,
 };
 use serde::Serialize;
 use splat_raster::{Rasterizer, RenderOptions};
@@ -688,16 +688,15 @@ pub fn scale_cameras(cameras: &Cameras, scale: f64) -> Result<Cameras> {
     }
     let mut sizes = Vec::with_capacity(cameras.len());
     let mut intrinsics = Vec::with_capacity(cameras.len());
-    for (&[w, h], &[fx, fy, cx, cy]) in cameras.image_size.iter().zip(cameras.intrinsics.iter()) {
+    for (&[w, h], k) in cameras.image_size.iter().zip(cameras.intrinsics.iter()) {
         let nw = (f64::from(w) * scale)
             .round()
             .clamp(1.0, f64::from(u32::MAX)) as u32;
         let nh = (f64::from(h) * scale)
             .round()
             .clamp(1.0, f64::from(u32::MAX)) as u32;
-        let (sx, sy) = (f64::from(nw) / f64::from(w), f64::from(nh) / f64::from(h));
         sizes.push([nw, nh]);
-        intrinsics.push([fx * sx, fy * sy, cx * sx, cy * sy]);
+        intrinsics.push(camera::rescale_intrinsics(k, [w, h], [nw, nh]));
     }
     Ok(Cameras {
         image_size: sizes.into(),

@@ -1,9 +1,10 @@
-//! Pose conversions shared by the camera importers.
+//! Pose conversions shared by the camera importers (quaternions, projection and lens
+//! math live in [`profuse_formats::camera`]).
 
 use nalgebra::Matrix3;
 
 /// A 3x3 matrix, row-major.
-pub type Mat3 = [[f64; 3]; 3];
+pub use profuse_formats::camera::Mat3;
 
 /// Largest entry of |MᵀM − I| for which a rotation read from a text file is snapped to
 /// the nearest rotation; beyond it the matrix is not a rotation and import fails. Text
@@ -12,33 +13,6 @@ pub const REORTHONORMALIZE_TOLERANCE: f64 = 1e-3;
 
 /// Deviation below which a matrix is taken as an exact rotation and left untouched.
 const EXACT_ROTATION_DEVIATION: f64 = 8.0 * f64::EPSILON;
-
-/// Rotation matrix of a quaternion (w, x, y, z), normalised first; `None` for a zero or
-/// non-finite quaternion.
-pub fn quaternion_to_rotation(q: [f64; 4]) -> Option<Mat3> {
-    let norm = q.iter().map(|c| c * c).sum::<f64>().sqrt();
-    if !norm.is_finite() || norm == 0.0 {
-        return None;
-    }
-    let [w, x, y, z] = q.map(|c| c / norm);
-    Some([
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ])
-}
 
 /// Largest entry of |MᵀM − I|.
 pub fn orthonormality_error(m: &Mat3) -> f64 {
@@ -122,14 +96,6 @@ pub fn world_to_camera_from_c2w(r_c2w: &Mat3, centre: [f64; 3]) -> [f64; 12] {
     out
 }
 
-/// `[R | t]` row-major from a rotation and translation.
-pub fn pose_row(r: &Mat3, t: [f64; 3]) -> [f64; 12] {
-    [
-        r[0][0], r[0][1], r[0][2], t[0], r[1][0], r[1][1], r[1][2], t[1], r[2][0], r[2][1],
-        r[2][2], t[2],
-    ]
-}
-
 /// A 4x4 row-major matrix product.
 pub fn mat4_mul(a: &[[f64; 4]; 4], b: &[[f64; 4]; 4]) -> [[f64; 4]; 4] {
     std::array::from_fn(|i| std::array::from_fn(|j| (0..4).map(|k| a[i][k] * b[k][j]).sum()))
@@ -147,20 +113,9 @@ pub fn translation_column(m: &[[f64; 4]; 4]) -> [f64; 3] {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
+    use profuse_formats::camera::quaternion_to_rotation;
 
-    #[test]
-    fn quaternion_identity_and_quarter_turn() {
-        assert_eq!(
-            quaternion_to_rotation([2.0, 0.0, 0.0, 0.0]),
-            Some([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-        );
-        let h = std::f64::consts::FRAC_1_SQRT_2;
-        let r = quaternion_to_rotation([h, 0.0, 0.0, h]).unwrap_or_default();
-        // 90° about z maps x to y.
-        assert!((r[1][0] - 1.0).abs() < 1e-12 && r[0][0].abs() < 1e-12);
-        assert_eq!(quaternion_to_rotation([0.0; 4]), None);
-    }
+    use super::*;
 
     #[test]
     fn snapping_fixes_small_noise_and_rejects_large() {

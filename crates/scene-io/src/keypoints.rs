@@ -220,9 +220,11 @@ fn to_pinhole(
 ) -> Option<[f32; 2]> {
     let shift = if opts.integer_centres { 0.5 } else { 0.0 };
     let (u, w) = (p[0] + shift, p[1] + shift);
-    let (u, w) = match (&cameras.distortion, opts.undistort) {
-        (Some(d), true) if d[v] != [0.0; 4] => undistort_pixel(cameras.intrinsics[v], d[v], u, w)?,
-        _ => (u, w),
+    let [u, w] = match (&cameras.distortion, opts.undistort) {
+        (Some(d), true) if d[v] != [0.0; 4] => {
+            undistort_pixel(&cameras.intrinsics[v], &d[v], [u, w])?
+        }
+        _ => [u, w],
     };
     Some([u as f32, w as f32])
 }

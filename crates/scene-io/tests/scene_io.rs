@@ -1858,11 +1858,10 @@ fn undistort_scene_writes_pinhole_cameras_and_resampled_images() {
     // Output pixel (x, y) shows the input at the distorted position of its centre: the red
     // channel is 6·(u − 0.5) there, green 8·(v − 0.5), within rounding.
     for (x, y) in [(5u32, 5u32), (20, 15), (33, 24)] {
-        let (u, v) = distort_pixel(
-            cams.intrinsics[0],
-            cams.distortion.as_ref().unwrap()[0],
-            f64::from(x) + 0.5,
-            f64::from(y) + 0.5,
+        let [u, v] = distort_pixel(
+            &cams.intrinsics[0],
+            &cams.distortion.as_ref().unwrap()[0],
+            [f64::from(x) + 0.5, f64::from(y) + 0.5],
         );
         let p = und.get_pixel(x, y);
         assert!(

@@ -1,7 +1,7 @@
 //! One view's pinhole camera, and helpers to make preview cameras (look-at, orbit) for
 //! scenes that come without cameras.
 
-use profuse_formats::{Cameras, Gaussians};
+use profuse_formats::{camera, Cameras, Gaussians};
 
 use crate::error::{RasterError, Result};
 use crate::{MAX_PIXELS, MAX_SIDE};
@@ -40,9 +40,10 @@ impl ViewCamera {
                 "image_size, intrinsics or world_to_camera has no row for this view".into(),
             ));
         };
+        let (rotation, translation) = camera::pose_from_row(m);
         let cam = ViewCamera {
-            rotation: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
-            translation: [m[3], m[7], m[11]],
+            rotation,
+            translation,
             intrinsics,
             width,
             height,
@@ -88,15 +89,29 @@ impl ViewCamera {
 
     /// Camera centre in world coordinates (−Rᵀt).
     pub fn center(&self) -> [f64; 3] {
-        let (r, t) = (&self.rotation, &self.translation);
-        std::array::from_fn(|i| -(r[0][i] * t[0] + r[1][i] * t[1] + r[2][i] * t[2]))
+        camera::camera_centre(&self.rotation, &self.translation)
     }
 
     /// World point → camera coordinates.
     #[inline]
     pub fn to_camera(&self, p: [f64; 3]) -> [f64; 3] {
-        let (r, t) = (&self.rotation, &self.translation);
-        std::array::from_fn(|i| r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2] + t[i])
+        camera::world_to_camera(&self.rotation, &self.translation, p)
+    }
+
+    /// The same camera rendered at a `width` x `height` grid over its image, with the
+    /// intrinsics rescaled so that grid pixel (x, y) is the ray through the centre of the
+    /// image region it covers (unchanged when the sizes agree).
+    pub fn at_grid(&self, width: u32, height: u32) -> ViewCamera {
+        ViewCamera {
+            intrinsics: camera::rescale_intrinsics(
+                &self.intrinsics,
+                [self.width, self.height],
+                [width, height],
+            ),
+            width,
+            height,
+            ..*self
+        }
     }
 
     /// Number of 16x16 tiles across and down.
@@ -124,10 +139,7 @@ pub fn look_at(eye: [f64; 3], target: [f64; 3], up: [f64; 3]) -> Option<[f64; 12
 
 /// Pinhole intrinsics `[fx, fy, cx, cy]` with square pixels, the principal point at the
 /// image centre and a horizontal field of view of `fov_x_deg` degrees.
-pub fn pinhole_intrinsics(width: u32, height: u32, fov_x_deg: f64) -> [f64; 4] {
-    let f = 0.5 * f64::from(width) / (0.5 * fov_x_deg.to_radians()).tan();
-    [f, f, 0.5 * f64::from(width), 0.5 * f64::from(height)]
-}
+pub use profuse_formats::camera::pinhole_intrinsics;
 
 /// A cameras table with the given views (names `view_000`, ...), all with one image size and
 /// intrinsics.

@@ -3,7 +3,7 @@
 
 use std::ops::Range;
 
-use profuse_formats::Gaussians;
+use profuse_formats::{camera, Gaussians};
 
 use crate::camera::ViewCamera;
 use crate::error::{RasterError, Result};
@@ -177,28 +177,10 @@ pub(crate) fn footprint_tau(opacity: f64) -> f64 {
 }
 
 /// Σ = R S Sᵀ Rᵀ from log-scales and a (w, x, y, z) quaternion, normalised here.
-/// Returns the upper triangle xx, xy, xz, yy, yz, zz.
+/// Returns the upper triangle xx, xy, xz, yy, yz, zz; all NaN for a zero or non-finite
+/// quaternion (whose normalisation would leave NaN in every row of R anyway).
 pub fn covariance_3d(log_scales: [f32; 3], q: [f32; 4]) -> [f64; 6] {
-    let [w, x, y, z] = q.map(f64::from);
-    let n = (w * w + x * x + y * y + z * z).sqrt();
-    let (w, x, y, z) = (w / n, x / n, y / n, z / n);
-    let r = [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ];
+    let r = camera::quaternion_to_rotation(q.map(f64::from)).unwrap_or([[f64::NAN; 3]; 3]);
     let s = log_scales.map(|l| f64::from(l).exp());
     // M = R S: column j of R scaled by s_j; Σ = M Mᵀ.
     let m: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| r[i][j] * s[j]));
@@ -247,8 +229,7 @@ pub(crate) fn project(
     }
     let [fx, fy, cx, cy] = cam.intrinsics;
     let (w, h) = (f64::from(cam.width), f64::from(cam.height));
-    let u = fx * p[0] / z + cx;
-    let v = fy * p[1] / z + cy;
+    let [u, v] = camera::project(&cam.intrinsics, p);
 
     // EWA: Jacobian of the perspective projection at the mean, with x/z and y/z clamped to
     // 1.3 x the half field of view (INRIA `computeCov2D`). The tangent range of the image is
@@ -570,8 +551,7 @@ impl ViewConsts {
         }
         let (px, py) = (cam_axis(0), cam_axis(1));
         let ([fx, fy], [cx, cy]) = (self.focal, self.principal);
-        let u = fx * px / z + cx;
-        let v = fy * py / z + cy;
+        let [u, v] = camera::project(&[fx, fy, cx, cy], [px, py, z]);
         if self.surely_off_grid(u, v, z, var) {
             return None;
         }
@@ -860,9 +840,10 @@ mod tests {
 
     fn camera(w: u32, h: u32, intrinsics: [f64; 4], eye: [f64; 3], target: [f64; 3]) -> ViewCamera {
         let m = look_at(eye, target, [0.0, 0.0, 1.0]).unwrap();
+        let (rotation, translation) = camera::pose_from_row(&m);
         ViewCamera {
-            rotation: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
-            translation: [m[3], m[7], m[11]],
+            rotation,
+            translation,
             intrinsics,
             width: w,
             height: h,
@@ -1159,8 +1140,7 @@ mod tests {
                     near += 1;
                     continue;
                 }
-                let [fx, fy, cx, cy] = cam.intrinsics;
-                let (u, v) = (fx * p[0] / p[2] + cx, fy * p[1] / p[2] + cy);
+                let [u, v] = camera::project(&cam.intrinsics, p);
                 let off_grid =
                     u < -2.0 || v < -2.0 || u > view.grid[0] + 2.0 || v > view.grid[1] + 2.0;
                 if view.surely_off_grid(u, v, p[2], prep.var_max[i]) {

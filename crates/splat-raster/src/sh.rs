@@ -1,8 +1,8 @@
 //! Real spherical harmonics up to degree 3 with the constants and sign conventions of the
 //! INRIA 3DGS code (`computeColorFromSH`).
 
-/// Degree-0 constant.
-pub const SH_C0: f64 = 0.282_094_791_773_878_14;
+/// Degree-0 constant (SPEC.md §4.2: colour = `SH_C0` · dc + 0.5).
+pub use profuse_formats::camera::SH_C0;
 /// Degree-1 constant.
 pub const SH_C1: f64 = 0.488_602_511_902_919_9;
 /// Degree-2 constants.

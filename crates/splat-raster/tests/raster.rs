@@ -7,6 +7,7 @@
 use std::path::Path;
 use std::sync::OnceLock;
 
+use profuse_formats::rng::SplitMix64;
 use profuse_formats::{Cameras, Gaussians};
 use splat_raster::{
     camera, DepthMode, ListScratch, RasterError, Rasterizer, RenderOptions, Simd, ViewCamera,
@@ -16,18 +17,11 @@ use splat_raster::{
 // ---------------------------------------------------------------------------------------
 // Small deterministic RNG (SplitMix64).
 
-struct Rng(u64);
+struct Rng(SplitMix64);
 
 impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
     fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+        self.0.unit()
     }
     fn range(&mut self, lo: f64, hi: f64) -> f64 {
         lo + (hi - lo) * self.uniform()
@@ -429,7 +423,7 @@ fn compare(lib: &ViewRender, r: &RefImage, k: usize, what: &str) -> (f32, usize,
 /// behind it), with SH degree 3, varied scales, rotations and opacities, and some
 /// Gaussians centred exactly on tile borders.
 fn random_scene(seed: u64, n: usize, cams: &Cameras) -> Gaussians {
-    let mut rng = Rng(seed);
+    let mut rng = Rng(SplitMix64::new(seed));
     let [fx, fy, cx, cy] = cams.intrinsics[0];
     let [w, h] = cams.image_size[0].map(f64::from);
     let (rw, t) = cams.pose(0);

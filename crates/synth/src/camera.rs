@@ -1,6 +1,6 @@
 //! Pinhole cameras in the OpenCV convention and the orbit they are placed on.
 
-use profuse_formats::Cameras;
+use profuse_formats::{camera, Cameras};
 
 use crate::config::Config;
 use crate::rng::{tag, Rng};
@@ -25,6 +25,8 @@ pub struct Camera {
 impl Camera {
     /// A camera at `center` looking at `target` with the world z axis up (image y down),
     /// fx = fy from the horizontal field of view, cx = W/2, cy = H/2.
+    /// (Not splat-raster's `look_at`: this one normalises by the reciprocal and falls back
+    /// to the y axis as up, and the written scenes depend on that arithmetic.)
     pub fn look_at(
         center: [f64; 3],
         target: [f64; 3],
@@ -41,12 +43,10 @@ impl Camera {
         let d = cross(f, r);
         let rotation = [r, d, f];
         let translation = [-dot(r, center), -dot(d, center), -dot(f, center)];
-        let w = f64::from(width);
-        let focal = (w / 2.0) / (hfov_deg.to_radians() / 2.0).tan();
         Camera {
             rotation,
             translation,
-            intrinsics: [focal, focal, w / 2.0, f64::from(height) / 2.0],
+            intrinsics: camera::pinhole_intrinsics(width, height, hfov_deg),
             width,
             height,
         }
@@ -67,52 +67,53 @@ impl Camera {
 
     /// Camera centre in world coordinates (−Rᵀt).
     pub fn center(&self) -> [f64; 3] {
-        let (r, t) = (&self.rotation, &self.translation);
-        let mut c = [0.0; 3];
-        for (i, ci) in c.iter_mut().enumerate() {
-            *ci = -(r[0][i] * t[0] + r[1][i] * t[1] + r[2][i] * t[2]);
-        }
-        c
+        camera::camera_centre(&self.rotation, &self.translation)
     }
 
     /// World direction of the ray through image point (px, py) in pixels, scaled so that
     /// its camera-z component is 1: a hit at ray parameter t has depth (camera z) t.
     pub fn ray(&self, px: f64, py: f64) -> [f64; 3] {
-        let [fx, fy, cx, cy] = self.intrinsics;
-        let c = [(px - cx) / fx, (py - cy) / fy, 1.0];
-        let r = &self.rotation;
-        [
-            r[0][0] * c[0] + r[1][0] * c[1] + r[2][0] * c[2],
-            r[0][1] * c[0] + r[1][1] * c[1] + r[2][1] * c[2],
-            r[0][2] * c[0] + r[1][2] * c[1] + r[2][2] * c[2],
-        ]
+        let [x, y] = camera::pixel_to_normalised(&self.intrinsics, [px, py]);
+        camera::camera_to_world_direction(&self.rotation, [x, y, 1.0])
     }
 
     /// Camera coordinates of a world point.
     pub fn to_camera(&self, p: [f64; 3]) -> [f64; 3] {
-        let (r, t) = (&self.rotation, &self.translation);
-        [
-            dot(r[0], p) + t[0],
-            dot(r[1], p) + t[1],
-            dot(r[2], p) + t[2],
-        ]
+        camera::world_to_camera(&self.rotation, &self.translation, p)
     }
 
     /// Projects a world point: pixel x, pixel y, depth (camera z). Not finite for points
     /// in the camera's plane.
     pub fn project(&self, p: [f64; 3]) -> [f64; 3] {
         let c = self.to_camera(p);
-        let [fx, fy, cx, cy] = self.intrinsics;
-        [fx * c[0] / c[2] + cx, fy * c[1] / c[2] + cy, c[2]]
+        let [u, v] = camera::project(&self.intrinsics, c);
+        [u, v, c[2]]
     }
 
     /// Row-major `[R | t]` as stored in a cameras file.
     pub fn world_to_camera(&self) -> [f64; 12] {
-        let (r, t) = (&self.rotation, &self.translation);
-        [
-            r[0][0], r[0][1], r[0][2], t[0], r[1][0], r[1][1], r[1][2], t[1], r[2][0], r[2][1],
-            r[2][2], t[2],
-        ]
+        camera::pose_row(&self.rotation, &self.translation)
+    }
+}
+
+/// A cameras table of these views (pinhole, no extra metadata), view `v` showing
+/// `image_names[v]`.
+pub fn cameras_table(cams: &[Camera], image_names: Vec<String>) -> Cameras {
+    Cameras {
+        image_names,
+        image_size: cams
+            .iter()
+            .map(|c| [c.width, c.height])
+            .collect::<Vec<_>>()
+            .into(),
+        intrinsics: cams.iter().map(|c| c.intrinsics).collect::<Vec<_>>().into(),
+        world_to_camera: cams
+            .iter()
+            .map(Camera::world_to_camera)
+            .collect::<Vec<_>>()
+            .into(),
+        distortion: None,
+        extra: Default::default(),
     }
 }
 

@@ -1,6 +1,6 @@
 //! Ground-truth Gaussians on the visible surfaces.
 
-use profuse_formats::Gaussians;
+use profuse_formats::{camera, Gaussians};
 use rayon::prelude::*;
 
 use crate::camera::Camera;
@@ -8,7 +8,7 @@ use crate::rng::{tag, Rng};
 use crate::scene::Scene;
 
 /// SH degree-0 constant: colour = C0 · dc + 0.5.
-pub const SH_C0: f64 = 0.282_094_791_773_878_14;
+pub use profuse_formats::camera::SH_C0;
 
 /// One Gaussian: mean, log-scales, rotation, SH DC, class.
 type Row = ([f32; 3], [f32; 3], [f32; 4], [f32; 3], i32);
@@ -29,8 +29,8 @@ pub(crate) fn sample(scene: &Scene, cameras: &[Camera], seed: u64, n: usize) -> 
             for attempt in 0..TRIES {
                 let mut rng = Rng::new(&[seed, tag::GAUSSIANS, k, attempt]);
                 let cam = &cameras[rng.below(cameras.len())];
-                let x = rng.below(cam.width as usize) as f64 + 0.5;
-                let y = rng.below(cam.height as usize) as f64 + 0.5;
+                let col = rng.below(cam.width as usize);
+                let [x, y] = camera::pixel_centre(col, rng.below(cam.height as usize));
                 let Some(hit) = scene.raycast(cam.center(), cam.ray(x, y)) else {
                     continue;
                 };
@@ -51,7 +51,7 @@ pub(crate) fn sample(scene: &Scene, cameras: &[Camera], seed: u64, n: usize) -> 
                     hit.point.map(|v| v as f32),
                     [s.ln() as f32, s.ln() as f32, (0.1 * s).ln() as f32],
                     q.map(|v| v as f32),
-                    rgb.map(|c| ((f64::from(c) / 255.0 - 0.5) / SH_C0) as f32),
+                    rgb.map(camera::rgb8_to_sh_dc),
                     class,
                 ));
             }

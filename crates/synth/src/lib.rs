@@ -104,7 +104,7 @@ use profuse_formats::{
 use rayon::prelude::*;
 use serde::Serialize;
 
-pub use camera::{orbit, Camera};
+pub use camera::{cameras_table, orbit, Camera};
 pub use config::{Config, FaultModel, MatchPrecision, Preset};
 pub use error::{Result, SynthError};
 pub use faults::FaultSet;
@@ -216,16 +216,8 @@ pub fn generate_with_progress(
         &(0..config.views).collect::<Vec<_>>(),
     )?;
     let cameras = Cameras {
-        image_names: names.clone(),
-        image_size: vec![[config.width, config.height]; config.views].into(),
-        intrinsics: cams.iter().map(|c| c.intrinsics).collect::<Vec<_>>().into(),
-        world_to_camera: cams
-            .iter()
-            .map(Camera::world_to_camera)
-            .collect::<Vec<_>>()
-            .into(),
-        distortion: None,
         extra: meta(&generator),
+        ..cameras_table(&cams, names.clone())
     };
     cameras.write(out.join("cameras.safetensors"))?;
     lap("render", &mut clock);

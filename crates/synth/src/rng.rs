@@ -1,14 +1,10 @@
 //! Seeded randomness that never depends on a third-party crate's version or on thread
 //! scheduling: SplitMix64 streams whose state is derived by hashing a *key* (seed, purpose,
-//! indices). Every random decision of the generator is a pure function of its key.
+//! indices). Every random decision of the generator is a pure function of its key. The
+//! generator is the workspace's one SplitMix64 ([`profuse_formats::rng`]); the keying is
+//! this crate's own (the written scenes depend on it).
 
-/// One SplitMix64 finaliser step (Steele, Lea, Flood 2014; the `splitmix64` of Vigna).
-pub(crate) const fn mix(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
+use profuse_formats::rng::{splitmix64 as mix, unit_from_bits, SplitMix64};
 
 /// Hashes a sequence of words into one 64-bit key (order-sensitive).
 pub(crate) fn key(parts: &[u64]) -> u64 {
@@ -21,11 +17,7 @@ pub(crate) fn key(parts: &[u64]) -> u64 {
 
 /// A uniform number in [0, 1) from a key (53 random bits).
 pub(crate) fn unit(parts: &[u64]) -> f64 {
-    to_unit(key(parts))
-}
-
-fn to_unit(x: u64) -> f64 {
-    (x >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    unit_from_bits(key(parts))
 }
 
 /// 64-bit FNV-1a of a string, to key randomness by names.
@@ -57,10 +49,10 @@ pub(crate) mod tag {
     pub const GAUSSIANS: u64 = 30;
 }
 
-/// A SplitMix64 stream.
+/// A SplitMix64 stream with a spare normal.
 #[derive(Debug, Clone)]
 pub(crate) struct Rng {
-    state: u64,
+    stream: SplitMix64,
     spare: Option<f64>,
 }
 
@@ -68,22 +60,14 @@ impl Rng {
     /// The stream of a key.
     pub(crate) fn new(parts: &[u64]) -> Self {
         Rng {
-            state: key(parts),
+            stream: SplitMix64::new(key(parts)),
             spare: None,
         }
     }
 
-    pub(crate) fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
     /// Uniform in [0, 1).
     pub(crate) fn unit(&mut self) -> f64 {
-        to_unit(self.next_u64())
+        self.stream.unit()
     }
 
     /// Uniform in [lo, hi).
@@ -93,7 +77,7 @@ impl Rng {
 
     /// Uniform integer in 0..n (n >= 1), by multiply-shift (bias below 2^-32 for our n).
     pub(crate) fn below(&mut self, n: usize) -> usize {
-        ((u128::from(self.next_u64()) * n as u128) >> 64) as usize
+        self.stream.below(n)
     }
 
     /// Standard normal (Box–Muller, both values used).
@@ -119,9 +103,9 @@ mod tests {
         let mut a = Rng::new(&[1, 2, 3]);
         let mut b = Rng::new(&[1, 2, 3]);
         let mut c = Rng::new(&[1, 3, 2]);
-        let xa: Vec<u64> = (0..4).map(|_| a.next_u64()).collect();
-        let xb: Vec<u64> = (0..4).map(|_| b.next_u64()).collect();
-        let xc: Vec<u64> = (0..4).map(|_| c.next_u64()).collect();
+        let xa: Vec<u64> = (0..4).map(|_| a.stream.next_u64()).collect();
+        let xb: Vec<u64> = (0..4).map(|_| b.stream.next_u64()).collect();
+        let xc: Vec<u64> = (0..4).map(|_| c.stream.next_u64()).collect();
         assert_eq!(xa, xb);
         assert_ne!(xa, xc);
     }

@@ -6,6 +6,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
+use profuse_formats::camera::quaternion_to_rotation;
 use profuse_formats::{
     Cameras, FileKind, Gaussians, Masks, Matches, Mesh, Prompts, ViewMaps, NO_OBJECT,
 };
@@ -778,12 +779,8 @@ fn gaussians_lie_on_visible_surfaces() {
         *per_class.entry(cls[k]).or_default() += 1;
         // Local z (the thin axis) is along the surface normal: the point nudged along it
         // leaves the surface.
-        let [w, x, y, z] = g.rotations[k].map(f64::from);
-        let n = [
-            2.0 * (x * z + w * y),
-            2.0 * (y * z - w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ];
+        let r = quaternion_to_rotation(g.rotations[k].map(f64::from)).unwrap();
+        let n = [r[0][2], r[1][2], r[2][2]];
         let q = [p[0] + 0.01 * n[0], p[1] + 0.01 * n[1], p[2] + 0.01 * n[2]];
         if scene.distance_to_surface(q) > 0.009 {
             off_surface += 1;

@@ -1,6 +1,8 @@
 //! The per-Gaussian pieces of the transfer kernel: the Mahalanobis metric of the
 //! Gaussian's own covariance, its opacity, and its class probabilities.
 
+use profuse_formats::camera::quaternion_to_rotation;
+
 use crate::classes::ClassSet;
 
 /// The descriptor dot product (f32, fixed summation order), shared with query.
@@ -74,29 +76,11 @@ impl Kernel {
 /// Rotation matrix of a quaternion (w, x, y, z), normalised in f64; the zero (or
 /// non-finite) quaternion gives the identity.
 pub fn rotation_matrix(q: [f32; 4]) -> [[f64; 3]; 3] {
-    let [w, x, y, z] = q.map(f64::from);
-    let n = (w * w + x * x + y * y + z * z).sqrt();
-    if !(n.is_finite() && n > 0.0) {
-        return [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-    }
-    let (w, x, y, z) = (w / n, x / n, y / n, z / n);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    quaternion_to_rotation(q.map(f64::from)).unwrap_or([
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 0.0, 1.0],
+    ])
 }
 
 /// Opacity 1 / (1 + exp(−logit)), evaluated in f64 (±inf logits give 1 and 0).

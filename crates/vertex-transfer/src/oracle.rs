@@ -22,6 +22,8 @@
 //! class ≈ 0.25–0.30, wrong classes ≈ 0.15–0.22 ± 0.03–0.04; the softmax is invariant to
 //! the common offset of CLIP cosines, so only the margin and the spread matter).
 
+use profuse_formats::camera::rgb8_to_sh_dc;
+use profuse_formats::rng::{SplitMix64, GOLDEN_GAMMA};
 use profuse_formats::{Features, FileKind, Gaussians, Mesh, Prompts};
 
 use crate::classes::ClassSet;
@@ -143,7 +145,7 @@ pub fn place_gaussians(mesh: Source<'_, Mesh>, config: &OracleConfig) -> Result<
         .iter()
         .map(|&v| {
             let rgb = m.colors.as_ref().map_or([128; 3], |c| c[v as usize]);
-            rgb.map(|c| ((f64::from(c) / 255.0 - 0.5) / synth::SH_C0) as f32)
+            rgb.map(rgb8_to_sh_dc)
         })
         .collect();
     let gaussians = Gaussians {
@@ -313,27 +315,22 @@ fn to_f32(v: &[f64]) -> Vec<f32> {
 /// SplitMix64 stream keyed by (seed, index), with Box–Muller normals: no third-party RNG,
 /// so the fixture never changes with a dependency version.
 struct SplitMix {
-    state: u64,
+    stream: SplitMix64,
     spare: Option<f64>,
 }
 
 impl SplitMix {
     fn new(seed: u64, index: u64) -> SplitMix {
-        let mut s = SplitMix {
-            state: seed ^ 0x5654_5846_4552_0000, // "VTXFER"
+        let start = SplitMix64::new(seed ^ 0x5654_5846_4552_0000).next_u64(); // "VTXFER"
+        let keyed = SplitMix64::new(start ^ index.wrapping_mul(GOLDEN_GAMMA)).next_u64();
+        SplitMix {
+            stream: SplitMix64::new(keyed),
             spare: None,
-        };
-        s.state = s.next_u64() ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        s.state = s.next_u64();
-        s
+        }
     }
 
     fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        self.stream.next_u64()
     }
 
     /// Uniform in (0, 1].

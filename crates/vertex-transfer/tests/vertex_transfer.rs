@@ -7,6 +7,7 @@
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
+use profuse_formats::rng::SplitMix64;
 use profuse_formats::{Features, FileKind, Gaussians, Mesh, Prompts, VertexLabels};
 use profuse_metrics::scannet::{evaluate, ClassSet as ScannetSet};
 use vertex_transfer::oracle::{self, OracleConfig};
@@ -17,19 +18,15 @@ use vertex_transfer::{
 
 // ---------------------------------------------------------------- helpers
 
-/// SplitMix64 with Box–Muller normals (test-local, independent of the crate's).
-struct Rng(u64);
+/// SplitMix64 with Box–Muller normals (test-local draws, independent of the crate's).
+struct Rng(SplitMix64);
 
 impl Rng {
     fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
     fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * ((self.next() >> 11) as f64 / (1u64 << 53) as f64)
+        lo + (hi - lo) * self.0.unit()
     }
     fn normal(&mut self) -> f64 {
         let u = self.uniform(1e-12, 1.0);
@@ -140,7 +137,7 @@ struct RandomScene {
 }
 
 fn random_scene(n: usize, side: f64, seed: u64) -> RandomScene {
-    let mut rng = Rng(seed);
+    let mut rng = Rng(SplitMix64::new(seed));
     let d = 16;
     let protos: Vec<Vec<f64>> = (0..6)
         .map(|_| (0..d).map(|_| rng.normal()).collect())

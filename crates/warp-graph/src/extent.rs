@@ -20,6 +20,7 @@
 //! [`Params::extent_agreement`]: crate::Params::extent_agreement
 //! [`Params::extent_merge_iou`]: crate::Params::extent_merge_iou
 
+use profuse_formats::camera;
 use splat_raster::ViewCamera;
 
 /// Histogram bins per axis over the scene bounds.
@@ -246,7 +247,6 @@ pub(crate) fn view_extents(
     bounds: &Bounds,
 ) -> Vec<Extent> {
     let mut out = vec![Extent::default(); masks];
-    let [fx, fy, cx, cy] = cam.intrinsics;
     let (r, t) = (cam.rotation, cam.translation);
     for y in 0..gh {
         let row = &labels[ymap[y] * mw..(ymap[y] + 1) * mw];
@@ -257,13 +257,9 @@ pub(crate) fn view_extents(
                 continue;
             }
             // Camera point, then world = Rᵀ (p − t).
-            let p = [
-                (x as f64 + 0.5 - cx) / fx * z - t[0],
-                (y as f64 + 0.5 - cy) / fy * z - t[1],
-                z - t[2],
-            ];
-            let w: [f64; 3] =
-                std::array::from_fn(|k| r[0][k] * p[0] + r[1][k] * p[1] + r[2][k] * p[2]);
+            let n = camera::pixel_to_normalised(&cam.intrinsics, camera::pixel_centre(x, y));
+            let p = [n[0] * z - t[0], n[1] * z - t[1], z - t[2]];
+            let w = camera::camera_to_world_direction(&r, p);
             out[label as usize].add_bins(bounds.bins_of(w));
         }
     }

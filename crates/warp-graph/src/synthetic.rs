@@ -5,6 +5,7 @@
 //! (i, j) is the exact shift (plus optional uniform noise), in normalised coordinates, with
 //! certainty in [0.6, 1] where the target lies inside view j and 0 elsewhere.
 
+use profuse_formats::rng::{splitmix64 as mix, unit_from_bits};
 use profuse_formats::{Floats, Labels, Masks, Matches, WarpCoords};
 
 /// What to generate.
@@ -57,18 +58,10 @@ pub struct Scene {
     pub truth: Vec<u32>,
 }
 
-/// SplitMix64 of a key: the random stream, keyed so that every value is independent of
-/// evaluation order.
-fn mix(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
-
+/// A uniform number in [0, 1) hashed from a key by chained SplitMix64 steps, so that
+/// every value is independent of evaluation order.
 fn unit(seed: u64, a: u64, b: u64, c: u64) -> f64 {
-    let h = mix(mix(mix(mix(seed) ^ a) ^ b) ^ c);
-    (h >> 11) as f64 / (1u64 << 53) as f64
+    unit_from_bits(mix(mix(mix(mix(seed) ^ a) ^ b) ^ c))
 }
 
 /// The world: a jittered lattice of Voronoi seeds with spacing `s`.

@@ -14,7 +14,7 @@ use std::borrow::Cow;
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
-use profuse_formats::Cameras;
+use profuse_formats::{camera, Cameras};
 use splat_raster::{DepthMode, Rasterizer, RenderOptions, ViewCamera, ViewRender};
 
 use crate::error::{Result, WarpGraphError};
@@ -132,12 +132,8 @@ impl DepthTest {
         if dq <= 0.0 {
             return true;
         }
-        let [fx, fy, cx, cy] = self.src_intrinsics;
-        let p = [
-            (x as f64 + 0.5 - cx) / fx * d,
-            (y as f64 + 0.5 - cy) / fy * d,
-            d,
-        ];
+        let n = camera::pixel_to_normalised(&self.src_intrinsics, camera::pixel_centre(x, y));
+        let p = [n[0] * d, n[1] * d, d];
         let zj = self.z_row[0] * p[0] + self.z_row[1] * p[1] + self.z_row[2] * p[2] + self.z_offset;
         zj > 0.0 && (zj - dq).abs() <= self.tol * dq
     }
@@ -151,18 +147,11 @@ pub(crate) fn grid_camera(
     gw: usize,
     gh: usize,
 ) -> Result<ViewCamera> {
-    let mut cam =
-        ViewCamera::from_cameras(cameras, view).map_err(|source| WarpGraphError::Raster {
-            context: format!("camera of view {view}"),
-            source,
-        })?;
-    let sx = gw as f64 / f64::from(cam.width);
-    let sy = gh as f64 / f64::from(cam.height);
-    let [fx, fy, cx, cy] = cam.intrinsics;
-    cam.intrinsics = [fx * sx, fy * sy, cx * sx, cy * sy];
-    cam.width = gw as u32;
-    cam.height = gh as u32;
-    Ok(cam)
+    let cam = ViewCamera::from_cameras(cameras, view).map_err(|source| WarpGraphError::Raster {
+        context: format!("camera of view {view}"),
+        source,
+    })?;
+    Ok(cam.at_grid(gw as u32, gh as u32))
 }
 
 /// The z row of the relative pose from camera i to camera j: z_j = row · X_i + offset.

@@ -24,6 +24,7 @@ use std::path::Path;
 
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
+use profuse_formats::camera::{pose_row, quaternion_to_rotation, rgb8_to_sh_dc};
 use profuse_formats::{Cameras, Gaussians};
 use serde::Serialize;
 
@@ -33,10 +34,9 @@ pub use model::{
 
 use crate::error::{invalid, missing, unsupported, Result};
 use crate::fsutil::show;
-use crate::geometry::{pose_row, quaternion_to_rotation};
 
 /// Degree-0 SH basis constant: colour = `SH_C0` · dc + 0.5.
-pub const SH_C0: f64 = 0.282_094_791_773_878_14;
+pub use profuse_formats::camera::SH_C0;
 
 /// Opacity every seeded Gaussian starts with (INRIA: `inverse_sigmoid(0.1)`).
 pub const SEED_OPACITY: f64 = 0.1;
@@ -200,7 +200,7 @@ pub fn colmap_cameras(model: &ColmapModel, options: &ColmapOptions) -> Result<Ca
         sizes.push(camera_size(camera, &cameras_label)?);
         intrinsics.push(k);
         distortion.push(d);
-        poses.push(pose_row(&r, image.tvec));
+        poses.push(pose_row(&r, &image.tvec));
     }
     let distorted = distortion.iter().any(|d| d.iter().any(|c| *c != 0.0));
     Ok(Cameras {
@@ -296,7 +296,6 @@ pub fn colmap_gaussians(model: &ColmapModel) -> Gaussians {
 pub fn seed_gaussians(points: &[[f64; 3]], colors: &[[u8; 3]]) -> Gaussians {
     let mean_sq = mean_squared_neighbour_distance(points);
     let logit = (SEED_OPACITY / (1.0 - SEED_OPACITY)).ln() as f32;
-    let sh = |c: u8| ((f64::from(c) / 255.0 - 0.5) / SH_C0) as f32;
     let n = points.len().min(colors.len());
     Gaussians {
         means: points
@@ -316,7 +315,7 @@ pub fn seed_gaussians(points: &[[f64; 3]], colors: &[[u8; 3]]) -> Gaussians {
         sh_dc: colors
             .iter()
             .take(n)
-            .map(|c| c.map(sh))
+            .map(|c| c.map(rgb8_to_sh_dc))
             .collect::<Vec<_>>()
             .into(),
         sh_degree: 0,
