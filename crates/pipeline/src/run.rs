@@ -305,20 +305,45 @@ pub fn run(
         force: opts.force,
         events,
     };
-    let mut lines = Vec::new();
-    let progress = |done: usize, total: usize| {
-        events(Event::Progress {
+    let mut lines = vec![gs_init_stage(&runner, config, &p)?];
+    if !config.fuse.no_proposals {
+        lines.push(warp_graph_stage(&runner, config, &p)?);
+    }
+    let (fuse_line, registered) = fuse_stage(&runner, config, &p)?;
+    lines.push(fuse_line);
+    lines.push(pq_stage(&runner, config, &p)?);
+    lines.push(query_stage(&runner, config, &p)?);
+    if let Some(mesh) = p.mesh() {
+        lines.push(vertex_transfer_stage(&runner, config, &p, &mesh)?);
+    }
+
+    let timing_s = timing(&lines);
+    Ok(Summary {
+        scene: scene.to_path_buf(),
+        out,
+        stages: lines,
+        timing_s,
+        registered,
+    })
+}
+
+impl Runner<'_> {
+    /// Progress of the running stage: `done` of `total` units.
+    fn progress(&self, done: usize, total: usize) {
+        (self.events)(Event::Progress {
             done: done as u64,
             total: total as u64,
         })
-    };
+    }
+}
 
-    // gs-init: cameras + images + matches -> gaussians.
-    let images = image_paths(&p)?;
+/// gs-init: cameras + images + matches -> gaussians.
+fn gs_init_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine> {
+    let images = image_paths(p)?;
     let mut inputs = vec![p.cameras.clone(), p.matches.clone()];
     inputs.extend(images);
-    lines.push(stage(
-        &runner,
+    stage(
+        r,
         "gs-init",
         to_json(&config.gs_init),
         inputs,
@@ -335,49 +360,56 @@ pub fn run(
                 images: p.scene.clone(),
                 matches: match_file,
             };
-            let (g, report) = gs_init::initialise_files(&inputs, &params, &progress)
+            let (g, report) = gs_init::initialise_files(&inputs, &params, &|d, t| r.progress(d, t))
                 .map_err(stage_err("gs-init"))?;
             g.write(&p.gaussians).map_err(stage_err("gs-init"))?;
             Ok(to_json(&report))
         },
-    )?);
+    )
+}
 
-    // warp-graph: masks + matches (+ cameras, gaussians for visibility) -> proposals.
-    if !config.fuse.no_proposals {
-        if p.sparse {
-            return Err(PipelineError::MissingInput {
-                stage: "warp-graph",
-                path: p.scene.join("matches.safetensors").display().to_string(),
-                expected: "dense matches (warp-graph warps mask label maps; sparse matches cannot)",
-            });
-        }
-        lines.push(stage(
-            &runner,
-            "warp-graph",
-            to_json(&config.warp_graph),
-            vec![
-                p.masks.clone(),
-                p.matches.clone(),
-                p.cameras.clone(),
-                p.gaussians.clone(),
-            ],
-            vec![p.proposals.clone()],
-            || {
-                let job = warp_graph::job::Job {
-                    masks: p.masks.clone(),
-                    matches: p.matches.clone(),
-                    cameras: Some(p.cameras.clone()),
-                    gaussians: Some(p.gaussians.clone()),
-                    out: p.proposals.clone(),
-                };
-                let report = warp_graph::job::run(&job, &config.warp_graph, &progress)
-                    .map_err(stage_err("warp-graph"))?;
-                Ok(to_json(&report))
-            },
-        )?);
+/// warp-graph: masks + matches (+ cameras, gaussians for visibility) -> proposals.
+fn warp_graph_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine> {
+    if p.sparse {
+        return Err(PipelineError::MissingInput {
+            stage: "warp-graph",
+            path: p.scene.join("matches.safetensors").display().to_string(),
+            expected: "dense matches (warp-graph warps mask label maps; sparse matches cannot)",
+        });
     }
+    stage(
+        r,
+        "warp-graph",
+        to_json(&config.warp_graph),
+        vec![
+            p.masks.clone(),
+            p.matches.clone(),
+            p.cameras.clone(),
+            p.gaussians.clone(),
+        ],
+        vec![p.proposals.clone()],
+        || {
+            let job = warp_graph::job::Job {
+                masks: p.masks.clone(),
+                matches: p.matches.clone(),
+                cameras: Some(p.cameras.clone()),
+                gaussians: Some(p.gaussians.clone()),
+                out: p.proposals.clone(),
+            };
+            let report = warp_graph::job::run(&job, &config.warp_graph, &|d, t| r.progress(d, t))
+                .map_err(stage_err("warp-graph"))?;
+            Ok(to_json(&report))
+        },
+    )
+}
 
-    // fuse: gaussians + cameras + masks (+ proposals) -> features.
+/// fuse: gaussians + cameras + masks (+ proposals) -> features, and what every mask
+/// registered (for the wrong-class share).
+fn fuse_stage(
+    r: &Runner<'_>,
+    config: &Config,
+    p: &Paths,
+) -> Result<(StageLine, Option<RegisteredMasks>)> {
     let fuse_name = if config.fuse.no_proposals {
         "fuse_baseline"
     } else {
@@ -388,19 +420,19 @@ pub fn run(
     if !config.fuse.no_proposals {
         fuse_inputs.push(p.proposals.clone());
     }
-    lines.push(stage(
-        &runner,
+    let line = stage(
+        r,
         fuse_name,
         to_json(&config.fuse),
         fuse_inputs,
         vec![p.features.clone()],
         || {
-            let job = fuse_job(config, &p).with_out(&p.features);
+            let job = fuse_job(config, p).with_out(&p.features);
             let views = Cameras::read(&p.cameras).map_or(0, |c| c.len());
             let mut done = 0;
             let run = profuse_fuse::job::run(&job, &config.fuse, &mut |_| {
                 done += 1;
-                progress(done, views)
+                r.progress(done, views)
             })
             .map_err(stage_err("fuse"))?;
             registered = Some(RegisteredMasks(std::sync::Arc::new(
@@ -408,11 +440,14 @@ pub fn run(
             )));
             Ok(to_json(&run.report))
         },
-    )?);
+    )?;
+    Ok((line, registered))
+}
 
-    // pq: features -> pq.
-    lines.push(stage(
-        &runner,
+/// pq: features -> pq.
+fn pq_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine> {
+    stage(
+        r,
         &format!("pq{}", p.suffix),
         to_json(&config.pq),
         vec![p.features.clone()],
@@ -422,10 +457,12 @@ pub fn run(
                 .map_err(stage_err("pq"))?;
             Ok(to_json(&report))
         },
-    )?);
+    )
+}
 
-    // query: gaussians + cameras + pq + prompts -> masks per (view, prompt) + selections.
-    let prompts = query_prompts(config, &p)?;
+/// query: gaussians + cameras + pq + prompts -> masks per (view, prompt) + selections.
+fn query_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine> {
+    let prompts = query_prompts(config, p)?;
     let mut query_inputs = vec![
         p.gaussians.clone(),
         p.cameras.clone(),
@@ -435,66 +472,59 @@ pub fn run(
     if let Some(l) = p.labels() {
         query_inputs.push(l);
     }
-    lines.push(stage(
-        &runner,
+    stage(
+        r,
         &format!("query{}", p.suffix),
         json!({ "query": to_json(&config.query), "prompts": prompts }),
         query_inputs,
         vec![p.query.clone()],
-        || run_query(config, &p, &prompts, &progress),
-    )?);
+        || run_query(config, p, &prompts, &|d, t| r.progress(d, t)),
+    )
+}
 
-    // vertex-transfer: when the scene has a labelled mesh (synthetic ground truth). One
-    // labelling per class set of the ScanNet protocol (OpenGaussian's): the vocabulary is
-    // the set's own class prompts, so each vertex takes the argmax over that set only.
-    if let Some(mesh) = p.mesh() {
-        let sets: Vec<&str> = p.vertex_labels.iter().map(|(s, _)| s.name()).collect();
-        lines.push(stage(
-            &runner,
-            &format!("vertex-transfer{}", p.suffix),
-            json!({ "vertex_transfer": to_json(&config.vertex_transfer), "class_sets": sets }),
-            vec![
-                p.gaussians.clone(),
-                p.pq.clone(),
-                p.prompts.clone(),
-                mesh.clone(),
-            ],
-            p.vertex_labels.iter().map(|(_, f)| f.clone()).collect(),
-            || {
-                let mut reports = serde_json::Map::new();
-                for (set, out) in &p.vertex_labels {
-                    let job = vertex_transfer::Job {
-                        gaussians: p.gaussians.clone(),
-                        descriptors: vertex_transfer::DescriptorFile::Pq(p.pq.clone()),
-                        prompts: p.prompts.clone(),
-                        classes: None,
-                        // NYU40 ids are 1..=40: they fit i32.
-                        class_filter: Some(set.ids().iter().map(|&id| id as i32).collect()),
-                        mesh: mesh.clone(),
-                        out: out.clone(),
-                        // The same stamp as the vertex-transfer tool, so the bytes agree.
-                        generator: Some(format!(
-                            "vertex-transfer {} run",
-                            env!("CARGO_PKG_VERSION")
-                        )),
-                    };
-                    let report = vertex_transfer::run_job(&job, &config.vertex_transfer)
-                        .map_err(stage_err("vertex-transfer"))?;
-                    reports.insert(format!("nyu{}", set.name()), to_json(&report));
-                }
-                Ok(Value::Object(reports))
-            },
-        )?);
-    }
-
-    let timing_s = timing(&lines);
-    Ok(Summary {
-        scene: scene.to_path_buf(),
-        out,
-        stages: lines,
-        timing_s,
-        registered,
-    })
+/// vertex-transfer, when the scene has a labelled mesh (synthetic ground truth): one
+/// labelling per class set of the ScanNet protocol (OpenGaussian's); the vocabulary is the
+/// set's own class prompts, so each vertex takes the argmax over that set only.
+fn vertex_transfer_stage(
+    r: &Runner<'_>,
+    config: &Config,
+    p: &Paths,
+    mesh: &Path,
+) -> Result<StageLine> {
+    let sets: Vec<&str> = p.vertex_labels.iter().map(|(s, _)| s.name()).collect();
+    stage(
+        r,
+        &format!("vertex-transfer{}", p.suffix),
+        json!({ "vertex_transfer": to_json(&config.vertex_transfer), "class_sets": sets }),
+        vec![
+            p.gaussians.clone(),
+            p.pq.clone(),
+            p.prompts.clone(),
+            mesh.to_path_buf(),
+        ],
+        p.vertex_labels.iter().map(|(_, f)| f.clone()).collect(),
+        || {
+            let mut reports = serde_json::Map::new();
+            for (set, out) in &p.vertex_labels {
+                let job = vertex_transfer::Job {
+                    gaussians: p.gaussians.clone(),
+                    descriptors: vertex_transfer::DescriptorFile::Pq(p.pq.clone()),
+                    prompts: p.prompts.clone(),
+                    classes: None,
+                    // NYU40 ids are 1..=40: they fit i32.
+                    class_filter: Some(set.ids().iter().map(|&id| id as i32).collect()),
+                    mesh: mesh.to_path_buf(),
+                    out: out.clone(),
+                    // The same stamp as the vertex-transfer tool, so the bytes agree.
+                    generator: Some(format!("vertex-transfer {} run", env!("CARGO_PKG_VERSION"))),
+                };
+                let report = vertex_transfer::run_job(&job, &config.vertex_transfer)
+                    .map_err(stage_err("vertex-transfer"))?;
+                reports.insert(format!("nyu{}", set.name()), to_json(&report));
+            }
+            Ok(Value::Object(reports))
+        },
+    )
 }
 
 /// The fuse stage's job over every view: the proposals under the configured
