@@ -251,32 +251,10 @@ pub fn generate_with_progress(
                 )
             })
             .collect();
-        let mut offsets = vec![0u32];
-        let mut labels = Vec::with_capacity(config.views * plane);
-        let mut features = Vec::new();
-        let mut entries = Vec::new();
-        for (v, vm) in per_view.into_iter().enumerate() {
-            labels.extend_from_slice(&vm.labels);
-            for (local, m) in vm.masks.iter().enumerate() {
-                features.extend(m.feature.iter().map(|x| f16::from_f32(*x)));
-                entries.push(MaskObject {
-                    id: entries.len(),
-                    view: v,
-                    local,
-                    object: (m.object != NO_OBJECT).then_some(m.object),
-                    object_name: scene.objects.get(m.object as usize).map(|o| o.name.clone()),
-                    class_id: scene.objects.get(m.object as usize).map(|o| o.class_id),
-                    purity: m.purity,
-                    pixels: m.pixels,
-                    objects: m.objects.clone(),
-                    split_half: m.half,
-                    feature_class: m.class_id,
-                    wrong_class: m.wrong_class,
-                });
-            }
-            offsets.push(entries.len() as u32);
-            provenance.push(vm.provenance);
-        }
+        let all = assemble_masks(per_view, &scene, config.views * plane);
+        let (labels, offsets, features, entries) =
+            (all.labels, all.offsets, all.features, all.entries);
+        provenance = all.provenance;
         num_masks = entries.len();
         Masks {
             view_names: names.clone(),
@@ -321,44 +299,9 @@ pub fn generate_with_progress(
     let mut num_pairs = 0;
     if config.write_matches {
         progress("computing warps");
-        let pairs = neighbour_pairs(&cams, config.neighbours);
-        num_pairs = pairs.len();
-        let warps = matches::compute(&scene, &cams, config, pairs);
-        let (warp, certainty) = match config.match_precision {
-            MatchPrecision::F32 => (
-                Floats::F32(warps.warp.into()),
-                Floats::F32(warps.certainty.into()),
-            ),
-            MatchPrecision::F16 => (
-                Floats::F16(
-                    warps
-                        .warp
-                        .iter()
-                        .map(|x| f16::from_f32(*x))
-                        .collect::<Vec<_>>()
-                        .into(),
-                ),
-                Floats::F16(
-                    warps
-                        .certainty
-                        .iter()
-                        .map(|x| f16::from_f32(*x))
-                        .collect::<Vec<_>>()
-                        .into(),
-                ),
-            ),
-        };
-        Matches {
-            num_views: config.views,
-            pairs: warps.pairs.into(),
-            height: warps.height,
-            width: warps.width,
-            warp,
-            certainty,
-            coords: WarpCoords::Normalized,
-            extra: meta(&generator),
-        }
-        .write(out.join("matches.safetensors"))?;
+        let (file, pairs) = matches_file(config, &scene, &cams, &generator);
+        num_pairs = pairs;
+        file.write(out.join("matches.safetensors"))?;
     } else {
         output::remove_stale(&out.join("matches.safetensors"))?;
     }
@@ -413,24 +356,7 @@ pub fn generate_with_progress(
     lap("mesh", &mut clock);
 
     // The scene description.
-    let objects: Vec<ObjectJson<'_>> = scene
-        .objects
-        .iter()
-        .map(|o| ObjectJson {
-            spec: o,
-            shape_kind: o.shape.kind(),
-            rotation_wxyz: o.rotation_wxyz(),
-        })
-        .collect();
-    let classes = classes_present
-        .iter()
-        .map(|(id, name)| ClassJson {
-            id: *id,
-            name: name.clone(),
-            room: classes::ROOM.contains(id),
-            instances: scene.objects.iter().filter(|o| o.class_id == *id).count(),
-        })
-        .collect();
+    let (objects, classes) = scene_tables(&scene, &classes_present);
     let file = SceneFile {
         format: "synth.scene",
         version: 1,
@@ -487,6 +413,115 @@ pub fn generate_with_progress(
         eval_frames,
         seconds,
     })
+}
+
+/// The scene description's object and class tables.
+fn scene_tables<'a>(
+    scene: &'a Scene,
+    classes_present: &[(u32, String)],
+) -> (Vec<ObjectJson<'a>>, Vec<ClassJson>) {
+    let objects = scene
+        .objects
+        .iter()
+        .map(|o| ObjectJson {
+            spec: o,
+            shape_kind: o.shape.kind(),
+            rotation_wxyz: o.rotation_wxyz(),
+        })
+        .collect();
+    let classes = classes_present
+        .iter()
+        .map(|(id, name)| ClassJson {
+            id: *id,
+            name: name.clone(),
+            room: classes::ROOM.contains(id),
+            instances: scene.objects.iter().filter(|o| o.class_id == *id).count(),
+        })
+        .collect();
+    (objects, classes)
+}
+
+/// Every view's masks in one table: the label planes, the per-view offsets, the f16
+/// features, the ground-truth entries and the per-view provenance.
+struct AssembledMasks {
+    labels: Vec<u16>,
+    offsets: Vec<u32>,
+    features: Vec<f16>,
+    entries: Vec<MaskObject>,
+    provenance: Vec<ViewProvenance>,
+}
+
+fn assemble_masks(per_view: Vec<masks::ViewMasks>, scene: &Scene, pixels: usize) -> AssembledMasks {
+    let mut all = AssembledMasks {
+        labels: Vec::with_capacity(pixels),
+        offsets: vec![0u32],
+        features: Vec::new(),
+        entries: Vec::new(),
+        provenance: Vec::new(),
+    };
+    for (v, vm) in per_view.into_iter().enumerate() {
+        all.labels.extend_from_slice(&vm.labels);
+        for (local, m) in vm.masks.iter().enumerate() {
+            all.features
+                .extend(m.feature.iter().map(|x| f16::from_f32(*x)));
+            let object = scene.objects.get(m.object as usize);
+            all.entries.push(MaskObject {
+                id: all.entries.len(),
+                view: v,
+                local,
+                object: (m.object != NO_OBJECT).then_some(m.object),
+                object_name: object.map(|o| o.name.clone()),
+                class_id: object.map(|o| o.class_id),
+                purity: m.purity,
+                pixels: m.pixels,
+                objects: m.objects.clone(),
+                split_half: m.half,
+                feature_class: m.class_id,
+                wrong_class: m.wrong_class,
+            });
+        }
+        all.offsets.push(all.entries.len() as u32);
+        all.provenance.push(vm.provenance);
+    }
+    all
+}
+
+/// The matches file of the scene's neighbouring view pairs, and the number of pairs.
+fn matches_file(
+    config: &Config,
+    scene: &Scene,
+    cams: &[Camera],
+    generator: &str,
+) -> (Matches, usize) {
+    let pairs = neighbour_pairs(cams, config.neighbours);
+    let num_pairs = pairs.len();
+    let warps = matches::compute(scene, cams, config, pairs);
+    let half = |v: Vec<f32>| {
+        Floats::F16(
+            v.iter()
+                .map(|x| f16::from_f32(*x))
+                .collect::<Vec<_>>()
+                .into(),
+        )
+    };
+    let (warp, certainty) = match config.match_precision {
+        MatchPrecision::F32 => (
+            Floats::F32(warps.warp.into()),
+            Floats::F32(warps.certainty.into()),
+        ),
+        MatchPrecision::F16 => (half(warps.warp), half(warps.certainty)),
+    };
+    let file = Matches {
+        num_views: config.views,
+        pairs: warps.pairs.into(),
+        height: warps.height,
+        width: warps.width,
+        warp,
+        certainty,
+        coords: WarpCoords::Normalized,
+        extra: meta(generator),
+    };
+    (file, num_pairs)
 }
 
 /// Renders one view: depth (camera z, 0 = nothing), object ids and RGB, rows in parallel.
