@@ -1,9 +1,9 @@
 //! `metrics bench`: throughput of every metric on generated data (no files): ScanNet
 //! evaluation, ARI, polygon rasterisation + IoU, surface distances in synth's demo room.
 
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
+use profuse_formats::rng::SplitMix64;
 use profuse_metrics::cluster::adjusted_rand_index;
 use profuse_metrics::mask::rasterize_polygon;
 use profuse_metrics::scannet::{evaluate, ClassSet};
@@ -36,16 +36,6 @@ pub struct Params {
     pub points: usize,
 }
 
-/// SplitMix64: dependency-free deterministic data for the benchmark.
-fn splitmix(state: &AtomicU64) -> u64 {
-    let mut z = state
-        .fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed)
-        .wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
 /// Runs the benchmark; `show` prints each part's seconds on stderr.
 pub fn run(p: &Params, show: bool) -> Result<Value, BoxError> {
     let Params {
@@ -56,8 +46,8 @@ pub fn run(p: &Params, show: bool) -> Result<Value, BoxError> {
         polygons,
         points,
     } = *p;
-    let rng = AtomicU64::new(42);
-    let mut next = |m: u64| splitmix(&rng) % m.max(1);
+    let mut rng = SplitMix64::new(42);
+    let mut next = |m: u64| rng.next_u64() % m.max(1);
 
     // ScanNet: labels 0..=40, predictions -1..=40, 80 % correct.
     let truth: Vec<u32> = (0..vertices).map(|_| next(41) as u32).collect();

@@ -77,8 +77,8 @@ pub enum JobError {
     Inputs {
         /// The input files.
         files: String,
-        /// Why.
-        error: WarpGraphError,
+        /// Why (boxed: the error is large and rarely built).
+        error: Box<WarpGraphError>,
     },
 }
 
@@ -136,7 +136,7 @@ pub fn run(
     let gaussians: Option<Gaussians> = read_optional(&job.gaussians)?;
     let with_files = |error| JobError::Inputs {
         files: job.files(),
-        error,
+        error: Box::new(error),
     };
     let mut inputs = Inputs::new(&masks, &matches);
     if let Some(c) = &cameras {
