@@ -160,20 +160,6 @@ pub fn init_threads(threads: Option<usize>) -> Result<(), BoxError> {
     Ok(())
 }
 
-/// Peak resident set size (VmHWM) of this process in MiB, from /proc/self/status
-/// (0 where unavailable). The `bench` subcommands report it.
-pub fn peak_rss_mb() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<f64>().ok())
-        })
-        .map_or(0.0, |kb| kb / 1024.0)
-}
-
 /// Encodes a PNG (8-bit RGB, 8- or 16-bit grey) and writes it atomically.
 pub fn write_png(
     path: &std::path::Path,
