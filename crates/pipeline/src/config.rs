@@ -22,41 +22,9 @@ pub struct Config {
     /// pq: product quantisation (paper 3.4).
     pub pq: profuse_pq::TrainParams,
     /// query: open-vocabulary selection (paper 3.4, 4.2).
-    pub query: Query,
+    pub query: profuse_query::Params,
     /// vertex-transfer: mesh-vertex labels (paper 4.3).
     pub vertex_transfer: vertex_transfer::Params,
-}
-
-/// query parameters.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct Query {
-    /// `relevancy` (LERF, with the canonical negatives) or `cosine`.
-    pub score: String,
-    /// Selection threshold τ on the score.
-    pub threshold: f32,
-    /// Silhouette threshold γ of the per-view masks.
-    pub gamma: f32,
-    /// Top-K contributors per pixel for the masks.
-    pub k: usize,
-    /// Prompts to query; empty = the categories of the LERF label files when the scene has
-    /// them, else every class prompt.
-    pub prompts: Vec<String>,
-    /// Also write overlays of the selections on the rendered views.
-    pub overlay: bool,
-}
-
-impl Default for Query {
-    fn default() -> Self {
-        Query {
-            score: "relevancy".into(),
-            threshold: profuse_query::DEFAULT_RELEVANCY_THRESHOLD,
-            gamma: profuse_query::DEFAULT_GAMMA,
-            k: profuse_query::DEFAULT_TOP_K,
-            prompts: Vec::new(),
-            overlay: true,
-        }
-    }
 }
 
 fn config_err(key: &str, value: &str, expected: &str) -> PipelineError {
@@ -160,13 +128,6 @@ impl Config {
         self.warp_graph
             .validate()
             .map_err(|e| config_err("warp_graph", &e.to_string(), "parameters in their domains"))?;
-        if !matches!(self.query.score.as_str(), "relevancy" | "cosine") {
-            return Err(config_err(
-                "query.score",
-                &self.query.score,
-                "relevancy or cosine",
-            ));
-        }
         Ok(())
     }
 }

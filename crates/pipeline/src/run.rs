@@ -625,11 +625,7 @@ fn run_query(
         &p.prompts,
     )
     .map_err(stage_err("query"))?;
-    let score = if q.score == "cosine" {
-        profuse_query::ScoreKind::Cosine
-    } else {
-        profuse_query::ScoreKind::Relevancy
-    };
+    let score = q.score;
     let (views, layout) = match p.labels() {
         Some(dir) => (
             profuse_query::ViewSelection::FromLabels(dir),

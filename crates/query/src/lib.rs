@@ -113,6 +113,7 @@
 mod activation;
 mod error;
 mod output;
+mod params;
 mod pipeline;
 mod score;
 mod select;
@@ -121,6 +122,7 @@ pub mod stats;
 pub use activation::{activation, Activation, Membership};
 pub use error::{QueryError, Result};
 pub use output::{overlay, OVERLAY_MIX, OVERLAY_TINT};
+pub use params::Params;
 pub use pipeline::{
     file_name_of, image_stem, rule_text, scale_cameras, DescriptorPath, DescriptorSet, Inputs,
     Layout, Plan, PlannedPrompt, PlannedView, PromptReport, PromptSelection, QueryOptions, Report,
