@@ -27,10 +27,12 @@ pub struct Config {
     pub vertex_transfer: vertex_transfer::Params,
 }
 
-fn config_err(key: &str, value: &str, expected: &str) -> PipelineError {
+/// A section whose values parse but lie outside their stage's domains; the stage's own
+/// error names the parameter and the domain.
+fn out_of_domain(section: &str, e: impl std::fmt::Display) -> PipelineError {
     PipelineError::Config {
-        key: key.into(),
-        detail: format!("{value:?}; expected {expected}"),
+        key: section.into(),
+        detail: e.to_string(),
     }
 }
 
@@ -124,10 +126,10 @@ impl Config {
     pub fn validate(&self) -> Result<()> {
         gs_init::Params::from(self.gs_init)
             .validate()
-            .map_err(|e| config_err("gs_init", &e.to_string(), "parameters in their domains"))?;
+            .map_err(|e| out_of_domain("gs_init", e))?;
         self.warp_graph
             .validate()
-            .map_err(|e| config_err("warp_graph", &e.to_string(), "parameters in their domains"))?;
+            .map_err(|e| out_of_domain("warp_graph", e))?;
         Ok(())
     }
 }
