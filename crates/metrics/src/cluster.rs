@@ -213,6 +213,51 @@ pub fn read_mask_objects(path: impl AsRef<std::path::Path>) -> Result<Vec<u32>> 
     Ok(masks.objects.iter().map(|o| o.unwrap_or(NONE)).collect())
 }
 
+/// The ground-truth ("oracle") proposals of a scene: masks on the same ground-truth
+/// object form one proposal, masks on no object ([`NONE`]) none. Proposals are numbered
+/// by ascending object id; `mask_view[m]` is the view of global mask `m` (for
+/// `proposal_views`). Running the pipeline on these gives the ceiling of proposal pooling
+/// for a perfect grouping (`profuse sweep --oracle`): what no grouping rule can beat with
+/// the paper's registration.
+pub fn oracle_proposals(truth: &[u32], mask_view: &[u32]) -> Result<profuse_formats::Proposals> {
+    if truth.len() != mask_view.len() {
+        return Err(MetricsError::LengthMismatch {
+            what: "oracle proposals",
+            left_name: "ground-truth masks",
+            left: truth.len(),
+            right_name: "mask views",
+            right: mask_view.len(),
+        });
+    }
+    let mut objects: Vec<u32> = truth.iter().copied().filter(|o| *o != NONE).collect();
+    objects.sort_unstable();
+    objects.dedup();
+    let rank = |o: u32| objects.binary_search(&o).ok().map(|r| r as u32);
+    let mask_proposal: Vec<u32> = truth.iter().map(|o| rank(*o).unwrap_or(NONE)).collect();
+    let mut size = vec![0u32; objects.len()];
+    let mut views: Vec<Vec<u32>> = vec![Vec::new(); objects.len()];
+    for (p, v) in mask_proposal.iter().zip(mask_view) {
+        if *p != NONE {
+            size[*p as usize] += 1;
+            views[*p as usize].push(*v);
+        }
+    }
+    let proposal_views: Vec<u32> = views
+        .iter_mut()
+        .map(|v| {
+            v.sort_unstable();
+            v.dedup();
+            v.len() as u32
+        })
+        .collect();
+    Ok(profuse_formats::Proposals {
+        mask_proposal: mask_proposal.into(),
+        proposal_size: size.into(),
+        proposal_views: proposal_views.into(),
+        extra: [("grouping".to_string(), "ground-truth".to_string())].into(),
+    })
+}
+
 /// Scores a proposals file's mask → proposal assignment (`mask_proposal`, `u32::MAX` =
 /// none) against per-mask ground truth (e.g. from [`read_mask_objects`]).
 pub fn proposal_scores(

@@ -35,6 +35,27 @@ fn brute_force_ari(predicted: &[u32], truth: &[u32]) -> f64 {
 }
 
 mod cluster {
+    /// The oracle proposals group masks by ground-truth object (ids by ascending object),
+    /// leave masks on no object out, count members and distinct views, and score a
+    /// perfect clustering.
+    #[test]
+    fn oracle_proposals_are_the_ground_truth_partition() {
+        use profuse_metrics::cluster::{oracle_proposals, proposal_scores};
+        let truth = [5, 2, NONE, 5, 2, 7, 5];
+        let views = [0, 0, 0, 1, 1, 1, 1];
+        let p = oracle_proposals(&truth, &views).unwrap();
+        assert_eq!(&p.mask_proposal[..], &[1, 0, NONE, 1, 0, 2, 1]);
+        assert_eq!(&p.proposal_size[..], &[2, 3, 1]);
+        assert_eq!(&p.proposal_views[..], &[2, 2, 1]);
+        assert_eq!(
+            p.extra.get("grouping").map(String::as_str),
+            Some("ground-truth")
+        );
+        let s = proposal_scores(&p, &truth).unwrap();
+        assert!(close(s.ari, 1.0) && close(s.purity, 1.0) && close(s.completeness, 1.0));
+        assert!(oracle_proposals(&truth, &views[..3]).is_err());
+    }
+
     use super::*;
 
     #[test]

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use profuse_formats::{Cameras, FileKind};
+use profuse_formats::{Cameras, FileKind, Masks, Proposals};
 use profuse_metrics::scannet::ClassSet;
 use serde::Serialize;
 use serde_json::{json, Value};
@@ -25,6 +25,10 @@ pub struct RunOptions {
     pub out: Option<PathBuf>,
     /// Redo every stage even when up to date.
     pub force: bool,
+    /// Use this proposals file (e.g. another grouping's, or the ground truth's) instead
+    /// of running warp-graph: the `proposals` stage validates it against the masks and
+    /// copies it to `out/proposals.safetensors`.
+    pub proposals: Option<PathBuf>,
 }
 
 /// Progress of a run, for a front end to display.
@@ -307,7 +311,10 @@ pub fn run(
     };
     let mut lines = vec![gs_init_stage(&runner, config, &p)?];
     if !config.fuse.no_proposals {
-        lines.push(warp_graph_stage(&runner, config, &p)?);
+        lines.push(match &opts.proposals {
+            Some(given) => given_proposals_stage(&runner, &p, given)?,
+            None => warp_graph_stage(&runner, config, &p)?,
+        });
     }
     let (fuse_line, registered) = fuse_stage(&runner, config, &p)?;
     lines.push(fuse_line);
@@ -399,6 +406,45 @@ fn warp_graph_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageL
             let report = warp_graph::job::run(&job, &config.warp_graph, &|d, t| r.progress(d, t))
                 .map_err(stage_err("warp-graph"))?;
             Ok(to_json(&report))
+        },
+    )
+}
+
+/// proposals: a given proposals file (instead of warp-graph) -> out/proposals, after
+/// checking that it has one entry per mask. Running it removes warp-graph's completion
+/// record, whose output it replaces, so that warp-graph runs again when it is next asked
+/// for.
+fn given_proposals_stage(r: &Runner<'_>, p: &Paths, given: &Path) -> Result<StageLine> {
+    stage(
+        r,
+        "proposals",
+        json!({ "from": given }),
+        vec![given.to_path_buf(), p.masks.clone()],
+        vec![p.proposals.clone()],
+        || {
+            clear_stamp(r.out, "warp-graph")
+                .map_err(io_err(r.out, "cannot remove a completion record"))?;
+            let props = Proposals::read(given).map_err(stage_err("proposals"))?;
+            let masks = Masks::read(&p.masks).map_err(stage_err("proposals"))?;
+            if props.mask_proposal.len() != masks.num_masks() {
+                return Err(PipelineError::Stage {
+                    stage: "proposals",
+                    source: format!(
+                        "{}: mask_proposal has {} entries, expected one per mask of {} ({})",
+                        given.display(),
+                        props.mask_proposal.len(),
+                        p.masks.display(),
+                        masks.num_masks()
+                    )
+                    .into(),
+                });
+            }
+            props.write(&p.proposals).map_err(stage_err("proposals"))?;
+            Ok(json!({
+                "from": given,
+                "proposals": props.len(),
+                "masks": masks.num_masks(),
+            }))
         },
     )
 }

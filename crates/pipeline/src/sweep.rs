@@ -17,9 +17,12 @@ use serde::Serialize;
 use serde_json::Value;
 
 use crate::config::Config;
+use profuse_formats::{FileKind, Masks};
+
 use crate::demo::{run_experiment, Experiment};
-use crate::error::{io_err, PipelineError, Result};
-use crate::run::RunOptions;
+use crate::error::{io_err, stage_err, PipelineError, Result};
+use crate::evaluate::evaluate_run;
+use crate::run::{run, Paths, RunOptions};
 
 /// What to sweep.
 #[derive(Debug, Clone)]
@@ -38,6 +41,9 @@ pub struct SweepOptions {
     /// The pipeline configuration of both variants (`fuse.no_proposals` is set for the
     /// baseline).
     pub config: Config,
+    /// Also run every row with the ground-truth proposals ([`run_oracle`]): the ceiling
+    /// of proposal pooling, which no grouping can beat with the same registration.
+    pub oracle: bool,
 }
 
 /// One (seed, fault set): scores of ProFuse and of the baseline. Scores in percent where
@@ -71,6 +77,12 @@ pub struct SweepRow {
     pub wrong_class_pixel_share: f64,
     /// The same for the baseline.
     pub baseline_wrong_class_pixel_share: f64,
+    /// LERF mIoU with the ground-truth proposals (`--oracle` only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub oracle_lerf_miou: Option<f64>,
+    /// ScanNet mIoU19 with the ground-truth proposals (`--oracle` only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub oracle_scannet_miou19: Option<f64>,
     /// Wall-clock seconds of the row (generation, both runs, evaluation).
     pub seconds: f64,
 }
@@ -115,9 +127,65 @@ impl SweepRow {
             completeness: cluster("completeness")?,
             wrong_class_pixel_share: get(s, "wrong_class_pixel_share", "proposals")?,
             baseline_wrong_class_pixel_share: get(b, "wrong_class_pixel_share", "baseline")?,
+            oracle_lerf_miou: None,
+            oracle_scannet_miou19: None,
             seconds: x.wall_s,
         })
     }
+
+    /// Adds the scores of the ground-truth proposals' run ([`run_oracle`]).
+    pub fn with_oracle(
+        mut self,
+        scene: &Path,
+        scores: &BTreeMap<String, Value>,
+    ) -> Result<SweepRow> {
+        let get = |key: &'static str| {
+            scores
+                .get(key)
+                .and_then(Value::as_f64)
+                .ok_or_else(|| missing(scene, "ground-truth proposals", key))
+        };
+        self.oracle_lerf_miou = Some(get("lerf_miou")?);
+        self.oracle_scannet_miou19 = Some(get("scannet_miou19")?);
+        Ok(self)
+    }
+
+    /// LERF mIoU of the ground-truth proposals minus the baseline's.
+    pub fn delta_oracle_lerf_miou(&self) -> Option<f64> {
+        self.oracle_lerf_miou.map(|m| m - self.baseline_lerf_miou)
+    }
+
+    /// ScanNet mIoU19 of the ground-truth proposals minus the baseline's.
+    pub fn delta_oracle_scannet_miou19(&self) -> Option<f64> {
+        self.oracle_scannet_miou19
+            .map(|m| m - self.baseline_scannet_miou19)
+    }
+}
+
+/// Runs the pipeline on a generated scene with its ground-truth proposals
+/// ([`profuse_metrics::cluster::oracle_proposals`] of `gt/mask_objects.json`) given to the
+/// `proposals` stage instead of warp-graph, into `SCENE/out_oracle`, and scores it.
+pub fn run_oracle(scene: &Path, config: &Config) -> Result<BTreeMap<String, Value>> {
+    let out = scene.join("out_oracle");
+    std::fs::create_dir_all(&out).map_err(io_err(&out, "cannot create the output directory"))?;
+    let truth = profuse_metrics::cluster::read_mask_objects(scene.join("gt/mask_objects.json"))
+        .map_err(stage_err("oracle"))?;
+    let masks = Masks::read(scene.join("masks.safetensors")).map_err(stage_err("oracle"))?;
+    let views: Vec<u32> = (0..masks.num_masks())
+        .map(|m| masks.view_of(m) as u32)
+        .collect();
+    let given = out.join("ground_truth_proposals.safetensors");
+    profuse_metrics::cluster::oracle_proposals(&truth, &views)
+        .map_err(stage_err("oracle"))?
+        .write(&given)
+        .map_err(stage_err("oracle"))?;
+    let opts = RunOptions {
+        out: Some(out),
+        force: false,
+        proposals: Some(given),
+    };
+    let summary = run(scene, config, &opts, &|_| {})?;
+    evaluate_run(&Paths::new(scene, &summary.out, false), config, &summary)
 }
 
 fn missing(scene: &Path, variant: &str, key: &str) -> PipelineError {
@@ -152,6 +220,12 @@ pub struct SweepMeans {
     pub mean_wrong_class_pixel_share: f64,
     /// Mean wrong-class pixel share of the baseline.
     pub mean_baseline_wrong_class_pixel_share: f64,
+    /// Mean LERF mIoU of the ground-truth proposals minus the baseline's (`--oracle`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mean_delta_oracle_lerf_miou: Option<f64>,
+    /// Mean ScanNet mIoU19 of the ground-truth proposals minus the baseline's (`--oracle`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mean_delta_oracle_scannet_miou19: Option<f64>,
     /// Rows averaged.
     pub rows: usize,
 }
@@ -181,9 +255,22 @@ impl SweepMeans {
             mean_completeness: mean(&|r| r.completeness),
             mean_wrong_class_pixel_share: mean(&|r| r.wrong_class_pixel_share),
             mean_baseline_wrong_class_pixel_share: mean(&|r| r.baseline_wrong_class_pixel_share),
+            mean_delta_oracle_lerf_miou: mean_of_all(&rows, SweepRow::delta_oracle_lerf_miou),
+            mean_delta_oracle_scannet_miou19: mean_of_all(
+                &rows,
+                SweepRow::delta_oracle_scannet_miou19,
+            ),
             rows: rows.len(),
         }
     }
+}
+
+/// The mean of `f` over `rows` when every row has it (and there is a row).
+fn mean_of_all(rows: &[&SweepRow], f: impl Fn(&SweepRow) -> Option<f64>) -> Option<f64> {
+    let values: Option<Vec<f64>> = rows.iter().map(|r| f(r)).collect();
+    values
+        .filter(|v| !v.is_empty())
+        .map(|v| v.iter().sum::<f64>() / v.len() as f64)
 }
 
 /// The summary of a sweep: the means over every row, the same per fault set, and the
@@ -261,6 +348,30 @@ pub enum SweepEvent<'a> {
         /// Seconds since the sweep started.
         elapsed: f64,
     },
+}
+
+impl SweepEvent<'_> {
+    /// The progress line of the event.
+    pub fn line(&self) -> String {
+        match self {
+            SweepEvent::RowStart {
+                index,
+                total,
+                seed,
+                faults,
+                elapsed,
+            } => format!("row {index}/{total}: seed {seed}, faults {faults} ({elapsed:.0} s elapsed)"),
+            SweepEvent::RowDone {
+                index,
+                total,
+                row,
+                elapsed,
+            } => format!(
+                "row {index}/{total} done in {:.1} s: LERF mIoU {:.2} vs {:.2} ({elapsed:.0} s elapsed)",
+                row.seconds, row.lerf_miou, row.baseline_lerf_miou
+            ),
+        }
+    }
 }
 
 fn list_err(list: &str, detail: String) -> PipelineError {
@@ -376,7 +487,10 @@ pub fn sweep(opts: &SweepOptions, events: &dyn Fn(SweepEvent<'_>)) -> Result<Swe
                     &RunOptions::default(),
                     &|_| {},
                 )?;
-                let row = SweepRow::from_experiment(seed, faults.name(), &x)?;
+                let mut row = SweepRow::from_experiment(seed, faults.name(), &x)?;
+                if opts.oracle {
+                    row = row.with_oracle(&dir, &run_oracle(&dir, &opts.config)?)?;
+                }
                 if !opts.keep {
                     remove_dir(&dir)?;
                 }
@@ -443,6 +557,19 @@ pub fn text_table(r: &SweepReport) -> String {
             100.0 * row.wrong_class_pixel_share,
             100.0 * row.baseline_wrong_class_pixel_share,
         );
+        if let (Some(l), Some(n)) = (
+            row.delta_oracle_lerf_miou(),
+            row.delta_oracle_scannet_miou19(),
+        ) {
+            let _ = writeln!(
+                s,
+                "{:>5} {:<19} ground-truth proposals: LERF mIoU {:.2} (Δ {l:+.2}), mIoU19 {:.2} (Δ {n:+.2})",
+                "",
+                "",
+                row.oracle_lerf_miou.unwrap_or(f64::NAN),
+                row.oracle_scannet_miou19.unwrap_or(f64::NAN),
+            );
+        }
     }
     let means = |s: &mut String, name: &str, m: &SweepMeans| {
         let _ = writeln!(
@@ -460,6 +587,16 @@ pub fn text_table(r: &SweepReport) -> String {
             100.0 * m.mean_wrong_class_pixel_share,
             100.0 * m.mean_baseline_wrong_class_pixel_share,
         );
+        if let (Some(l), Some(n)) = (
+            m.mean_delta_oracle_lerf_miou,
+            m.mean_delta_oracle_scannet_miou19,
+        ) {
+            let _ = writeln!(
+                s,
+                "{:<19}           ground-truth proposals: mean Δ LERF mIoU {l:+.2}, mean Δ ScanNet mIoU19 {n:+.2}",
+                ""
+            );
+        }
     };
     let _ = writeln!(s);
     means(&mut s, "all", &r.summary.all);
@@ -514,8 +651,37 @@ mod tests {
             completeness: 0.25,
             wrong_class_pixel_share: 0.1,
             baseline_wrong_class_pixel_share: 0.2,
+            oracle_lerf_miou: None,
+            oracle_scannet_miou19: None,
             seconds: 1.0,
         }
+    }
+
+    #[test]
+    fn oracle_means_need_every_row_and_stay_out_of_the_json_otherwise() {
+        let plain = SweepReport::new(vec![row("a", 50.0, 40.0)], 1.0);
+        let j = serde_json::to_value(&plain).unwrap();
+        assert!(j["summary"].get("mean_delta_oracle_lerf_miou").is_none());
+        assert!(j["rows"][0].get("oracle_lerf_miou").is_none());
+
+        let with = |miou: f64, sn: f64| SweepRow {
+            oracle_lerf_miou: Some(miou),
+            oracle_scannet_miou19: Some(sn),
+            ..row("a", 50.0, 40.0)
+        };
+        let r = SweepReport::new(vec![with(44.0, 3.0), with(47.0, 0.0)], 1.0);
+        assert_eq!(r.summary.all.mean_delta_oracle_lerf_miou, Some(5.5));
+        assert_eq!(r.summary.all.mean_delta_oracle_scannet_miou19, Some(0.5));
+        let j = serde_json::to_value(&r).unwrap();
+        assert_eq!(j["rows"][1]["oracle_lerf_miou"], 47.0);
+        let text = text_table(&r);
+        assert!(
+            text.contains("ground-truth proposals: mean Δ LERF mIoU +5.50"),
+            "{text}"
+        );
+
+        let mixed = SweepReport::new(vec![with(44.0, 3.0), row("a", 50.0, 40.0)], 1.0);
+        assert_eq!(mixed.summary.all.mean_delta_oracle_lerf_miou, None);
     }
 
     #[test]

@@ -20,6 +20,17 @@ fn tiny_config() -> Config {
         .unwrap()
 }
 
+/// An error and its sources, as the tools print them.
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut next = e.source();
+    while let Some(cause) = next {
+        text = format!("{text}: {cause}");
+        next = cause.source();
+    }
+    text
+}
+
 fn ran(s: &Summary) -> Vec<(&str, bool)> {
     s.stages.iter().map(|l| (l.stage.as_str(), l.ran)).collect()
 }
@@ -199,4 +210,68 @@ fn missing_inputs_and_bad_parameters_name_the_file_or_key_and_write_nothing() {
         chain.contains("query") && chain.contains("prompts.safetensors"),
         "{chain}"
     );
+}
+
+/// `RunOptions::proposals` replaces warp-graph by a given file (here the ground truth's,
+/// through `sweep::run_oracle`): the proposals are exactly the ground truth (ARI 1), the
+/// stage is skipped when up to date, a file of the wrong length is refused naming both
+/// files, and warp-graph runs again when it is next asked for.
+#[test]
+fn given_proposals_replace_warp_graph() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let scores = profuse_pipeline::sweep::run_oracle(dir.path(), &tiny_config()).unwrap();
+    assert_eq!(scores["proposals"]["ari"].as_f64(), Some(1.0), "{scores:?}");
+    assert_eq!(scores["proposals"]["purity"].as_f64(), Some(1.0));
+    assert!(scores["lerf_miou"].as_f64().unwrap() > 25.0, "{scores:?}");
+
+    let out = dir.path().join("out_oracle");
+    let given = out.join("ground_truth_proposals.safetensors");
+    let opts = RunOptions {
+        out: Some(out.clone()),
+        force: false,
+        proposals: Some(given.clone()),
+    };
+    let again = run(dir.path(), &tiny_config(), &opts, &|_| {}).unwrap();
+    assert_eq!(again.stages[1].stage, "proposals");
+    assert!(again.stages.iter().all(|l| !l.ran), "{:?}", ran(&again));
+
+    // One entry too few (a valid file: every mask unassigned).
+    let masks = profuse_formats::Masks::read(dir.path().join("masks.safetensors")).unwrap();
+    let short = profuse_formats::Proposals {
+        mask_proposal: vec![u32::MAX; masks.num_masks() - 1].into(),
+        proposal_size: Vec::<u32>::new().into(),
+        proposal_views: Vec::<u32>::new().into(),
+        extra: Default::default(),
+    };
+    let bad = dir.path().join("short.safetensors");
+    short.write(&bad).unwrap();
+    let e = run(
+        dir.path(),
+        &tiny_config(),
+        &RunOptions {
+            proposals: Some(bad.clone()),
+            ..opts.clone()
+        },
+        &|_| {},
+    )
+    .unwrap_err();
+    let e = error_chain(&e);
+    assert!(
+        e.contains("short.safetensors") && e.contains("one per mask"),
+        "{e}"
+    );
+
+    let back = run(
+        dir.path(),
+        &tiny_config(),
+        &RunOptions {
+            proposals: None,
+            ..opts
+        },
+        &|_| {},
+    )
+    .unwrap();
+    assert_eq!(back.stages[1].stage, "warp-graph");
+    assert!(back.stages[1].ran, "{:?}", ran(&back));
 }

@@ -45,6 +45,10 @@ enum Command {
     Run {
         /// The scene directory.
         scene: PathBuf,
+        /// Use this proposals file (another grouping's, or ground truth) instead of running
+        /// warp-graph; it must have one entry per mask of SCENE/masks.safetensors.
+        #[arg(long, value_name = "FILE")]
+        proposals: Option<PathBuf>,
         #[command(flatten)]
         common: Common,
     },
@@ -98,6 +102,9 @@ enum Command {
         /// Keep every row's scene and pipeline outputs (default: removed after the row).
         #[arg(long)]
         keep: bool,
+        /// Also run each row with the ground-truth proposals (the ceiling of any grouping).
+        #[arg(long)]
+        oracle: bool,
         /// TOML configuration whose keys apply on top of the demo's settings (to both
         /// methods).
         #[arg(long, value_name = "TOML")]
@@ -160,7 +167,11 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
         Command::Inspect { file } => inspect(&file),
-        Command::Run { scene, common } => run(|| run_scene(&scene, &common)),
+        Command::Run {
+            scene,
+            proposals,
+            common,
+        } => run(|| run_scene(&scene, proposals, &common)),
         Command::Demo {
             out,
             seed,
@@ -175,6 +186,7 @@ fn main() -> ExitCode {
             json,
             out,
             keep,
+            oracle,
             config,
             set,
             quiet,
@@ -186,6 +198,7 @@ fn main() -> ExitCode {
                 out,
                 keep,
                 config: cli::demo_config(config.as_deref(), &set)?,
+                oracle,
             };
             run_sweep(&opts, json, quiet)
         })()),
@@ -207,17 +220,19 @@ fn inspect(file: &Path) -> ExitCode {
     }
 }
 
-fn run_options(common: &Common) -> RunOptions {
+fn run_options(common: &Common, proposals: Option<PathBuf>) -> RunOptions {
     RunOptions {
         out: common.out_dir.clone(),
         force: common.force,
+        proposals,
     }
 }
 
-fn run_scene(scene: &Path, common: &Common) -> Result<Value, BoxError> {
+fn run_scene(scene: &Path, proposals: Option<PathBuf>, common: &Common) -> Result<Value, BoxError> {
     let config = cli::run_config(common.config.as_deref(), &common.set)?;
     let bars = StageBars::new(chatty(common.quiet));
-    let value = cli::run_and_record(scene, &config, &run_options(common), &|e| bars.event(e))?;
+    let opts = run_options(common, proposals);
+    let value = cli::run_and_record(scene, &config, &opts, &|e| bars.event(e))?;
     print_timing(common.quiet, &value);
     Ok(value)
 }
@@ -245,7 +260,7 @@ fn demo(
         preset: scene.preset,
         faults: synth::FaultSet::parse(&scene.faults)?,
         config: cli::demo_config(common.config.as_deref(), &common.set)?,
-        run: run_options(common),
+        run: run_options(common, None),
     };
     let bars = StageBars::new(show);
     let value = demo::run_demo(&opts, &|e| bars.event(e), &|msg| {
@@ -264,25 +279,9 @@ fn demo(
 fn run_sweep(opts: &SweepOptions, as_json: bool, quiet: bool) -> Result<String, BoxError> {
     let show = chatty(quiet);
     let events = |e: SweepEvent<'_>| {
-        match e {
-        _ if !show => {}
-        SweepEvent::RowStart {
-            index,
-            total,
-            seed,
-            faults,
-            elapsed,
-        } => eprintln!("row {index}/{total}: seed {seed}, faults {faults} ({elapsed:.0} s elapsed)"),
-        SweepEvent::RowDone {
-            index,
-            total,
-            row,
-            elapsed,
-        } => eprintln!(
-            "row {index}/{total} done in {:.1} s: LERF mIoU {:.2} vs {:.2} ({elapsed:.0} s elapsed)",
-            row.seconds, row.lerf_miou, row.baseline_lerf_miou
-        ),
-    }
+        if show {
+            eprintln!("{}", e.line());
+        }
     };
     let report = sweep::sweep(opts, &events)?;
     if show && opts.keep {
