@@ -32,6 +32,14 @@
 //!   - [`keypoints`]: keypoint-pair `.npz` files (XFeat, LightGlue, LoFTR) → `+0.5`
 //!     (OpenCV puts pixel centres at integers), undistorted with [`undistort`] when the
 //!     cameras carry OpenCV k1 k2 p1 p2, so that every later stage is pinhole.
+//! * **Bounded reads.** Files are opened only when they are regular files (a FIFO would
+//!   block, `/dev/zero` never ends); text inputs are capped ([`MAX_SMALL_TEXT_BYTES`],
+//!   [`MAX_JSON_BYTES`], [`ColmapOptions::max_text_bytes`]); `.npy` headers are capped at
+//!   NumPy's 10,000 bytes and 16 nesting levels; `.npz` members are inflated only up to
+//!   the size their `.npy` header fixes ([`npy::read_npz_capped`]).
+//! * **One rule for image paths** read from inputs ([`scene_relative_parts`]): relative,
+//!   inside the scene folder (no `..`), not absolute. An import with nothing to import
+//!   (no view, no pair) is an error, never an empty file.
 //! * **No printing.** Warnings (skipped frames, missing optional files) are returned in
 //!   each importer's report; the `scene-io` tool prints them.
 //! * **Atomic writes.** Exports go to a temporary file next to the target, then are
@@ -82,7 +90,7 @@ pub mod undistort;
 
 pub use colmap::{import_colmap, ColmapImport, ColmapOptions, ColmapReport};
 pub use error::{Result, SceneError};
-pub use fsutil::image_dimensions;
+pub use fsutil::{image_dimensions, scene_relative_parts, MAX_JSON_BYTES, MAX_SMALL_TEXT_BYTES};
 pub use langsplat::{import_langsplat, LangSplatOptions, LangSplatReport};
 pub use ply::{read_inria_ply, write_inria_ply, PlyReport, OPACITY_LOGIT_CLAMP};
 pub use scannet::{

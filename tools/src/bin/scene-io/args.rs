@@ -64,6 +64,9 @@ pub enum Command {
         /// (use "" for none).
         #[arg(long, default_value = "images/")]
         images_prefix: String,
+        /// Largest text model file read, in MiB (a bigger one is an error).
+        #[arg(long, value_name = "MIB", default_value_t = scene_io::colmap::MAX_TEXT_BYTES >> 20)]
+        max_text_mb: u64,
     },
     /// ScanNet SensReader export (color/, pose/, intrinsic/) → cameras file, axis-aligned
     /// by <scene>.txt when present; frames with non-finite poses are skipped.
