@@ -1,8 +1,9 @@
-//! Subcommands whose bodies do not fit `main.rs`: ScanNet folders.
+//! Subcommands whose bodies do not fit `main.rs`: ScanNet folders and LLFF scenes.
 
 use std::path::{Path, PathBuf};
 
 use profuse_tools::BoxError;
+use scene_io::llff::{import_llff, LlffOptions};
 use scene_io::scannet::{
     import_scannet_folder, read_axis_alignment, AxisAlignment, ScannetOptions,
 };
@@ -33,4 +34,11 @@ pub fn scannet(
     warn_all(quiet, &report.warnings);
     stamp(&mut cams.extra, "scannet");
     save(&cams, "scannet", scene_dir, out, &report, quiet)
+}
+
+/// `scene-io llff`.
+pub fn llff(scene: &Path, out: &Path, factor: u32, quiet: bool) -> Result<Value, BoxError> {
+    let (mut cams, report) = import_llff(scene, &LlffOptions { factor })?;
+    stamp(&mut cams.extra, "llff");
+    save(&cams, "llff", scene, out, &report, quiet)
 }

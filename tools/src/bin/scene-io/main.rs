@@ -81,6 +81,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             let align = (axis_align, no_axis_align);
             importers::scannet(&scene_dir, &out, stride, align, size, quiet)
         }
+        Command::Llff { scene, out, factor } => importers::llff(&scene, &out, factor, quiet),
         Command::ScannetMesh {
             labels_ply,
             out,
