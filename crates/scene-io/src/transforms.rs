@@ -21,7 +21,7 @@
 //! `.png`, then `.jpg` (the NeRF-synthetic style). Frames whose image is missing are
 //! skipped with a warning in the report. A `file_path` that is absolute or has a `..`
 //! component is an error ([`crate::scene_relative_parts`]: image paths stay inside the
-//! scene folder). The JSON is read up to [`crate::MAX_JSON_BYTES`] (256 MiB).
+//! scene folder). The JSON is read up to [`crate::MAX_JSON_BYTES`] (64 MiB).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -277,7 +277,7 @@ fn devices_and_directories_are_refused_as_inputs() {
     assert!(err.to_string().contains("a directory"), "{err}");
 }
 
-/// Item 10: text readers cap what they read: a transforms.json over 256 MiB (a sparse
+/// Item 10: text readers cap what they read: a transforms.json over 64 MiB (a sparse
 /// file: no disk used) and a ScanNet pose over 1 MiB are refused from their size before
 /// any byte is read; before, both were read whole.
 #[test]
