@@ -573,6 +573,18 @@ def open_container(path: Any) -> Container:
     return _open_container(path, _label(path))
 
 
+def _foreign_format(head: bytes) -> str | None:
+    """What a file given in place of a container is, from its first bytes (asked only
+    once the header length has failed); mirrors ``foreign_format`` in container.rs."""
+    if head.startswith(b"ply\n") or head.startswith(b"ply\r\n"):
+        return "it is a PLY file; convert an INRIA 3DGS PLY with `scene-io ply-import FILE --out gaussians.safetensors`"
+    if head.startswith(b"\x93NUMPY"):
+        return "it is a NumPy .npy array (scene-io reads NumPy inputs: see `scene-io --help`)"
+    if head.startswith(b"PK\x03\x04"):
+        return "it is a zip archive such as a NumPy .npz (scene-io reads those: see `scene-io --help`)"
+    return None
+
+
 def _open_container(path: Any, label: str) -> Container:
     """:func:`open_container` naming the file ``label`` in errors (the writers validate
     their temporary file under the target's name)."""
@@ -591,6 +603,9 @@ def _open_container(path: Any, label: str) -> Container:
                 raise _truncated(label, f"{file_len} bytes, shorter than the 8-byte header length")
             (header_len,) = struct.unpack("<Q", head)
             if header_len > MAX_HEADER_BYTES:
+                foreign = _foreign_format(head)
+                if foreign is not None:
+                    raise _header_error(label, f"not a safetensors file: {foreign}")
                 raise _header_error(
                     label, f"header length {header_len} exceeds the {MAX_HEADER_BYTES}-byte limit"
                 )

@@ -695,6 +695,20 @@ class ContainerTests(TempDirTest):
     def mesh_parts(self) -> tuple[dict, bytes]:
         return split_file(self.build("mesh").read_bytes())
 
+    def test_foreign_formats_are_named(self) -> None:
+        """Issue 20 item 12: a PLY, .npy or .npz given as a container is named, with the
+        tool that reads it, instead of "header length ... exceeds the limit"."""
+        cases = [
+            (b"ply\nformat binary_little_endian 1.0\nend_header\n", "not a safetensors file: it is a PLY file; convert an INRIA 3DGS PLY with `scene-io ply-import FILE --out gaussians.safetensors`"),
+            (b"\x93NUMPY\x01\x00v\x00{'descr': '<f4'}", "it is a NumPy .npy array"),
+            (b"PK\x03\x04\x14\x00\x00\x00\x08\x00", "it is a zip archive"),
+        ]
+        for raw, expected in cases:
+            path = self.fresh("foreign")
+            path.write_bytes(raw)
+            err = self.assert_rejects(path, "header", None)
+            self.assertIn(expected, err.message)
+
     def test_io(self) -> None:
         missing = self.dir / "missing.safetensors"
         err = self.assert_rejects(missing, "io", None)

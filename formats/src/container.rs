@@ -400,6 +400,21 @@ impl Container {
     }
 }
 
+/// What a file given in place of a container is, from its first bytes, with what to do
+/// (only asked once the header length has failed, so a container never matches).
+/// Mirrored by `_foreign_format` of the Python reader.
+fn foreign_format(bytes: &[u8]) -> Option<&'static str> {
+    if bytes.starts_with(b"ply\n") || bytes.starts_with(b"ply\r\n") {
+        Some("it is a PLY file; convert an INRIA 3DGS PLY with `scene-io ply-import FILE --out gaussians.safetensors`")
+    } else if bytes.starts_with(b"\x93NUMPY") {
+        Some("it is a NumPy .npy array (scene-io reads NumPy inputs: see `scene-io --help`)")
+    } else if bytes.starts_with(b"PK\x03\x04") {
+        Some("it is a zip archive such as a NumPy .npz (scene-io reads those: see `scene-io --help`)")
+    } else {
+        None
+    }
+}
+
 type ParsedHeader = (
     usize,
     BTreeMap<String, TensorInfo>,
@@ -425,6 +440,9 @@ fn parse_header(path: &str, bytes: &[u8]) -> Result<ParsedHeader> {
     len_bytes.copy_from_slice(&bytes[..8]);
     let header_len = u64::from_le_bytes(len_bytes);
     if header_len > MAX_HEADER_BYTES {
+        if let Some(kind) = foreign_format(bytes) {
+            return Err(header_err(format!("not a safetensors file: {kind}")));
+        }
         return Err(header_err(format!(
             "header length {header_len} exceeds the {MAX_HEADER_BYTES}-byte limit"
         )));

@@ -16,6 +16,8 @@
 //!   undistorted (beyond the model's fold) is dropped and counted.
 //! * **Certainty.** Keypoint matchers give none, so every match gets 1.
 //! * Pairs appear in file-name order; rows keep their order within a file.
+//! * No pair file naming two views (every file skipped, or none given) is an error, not
+//!   an empty file.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -115,6 +117,22 @@ pub fn import_keypoint_pairs(
         pairs.push([vi as u32, vj as u32]);
         offsets.push(points_i.len() as u64);
         report.pairs += 1;
+    }
+    if report.pairs == 0 {
+        let why = match report.skipped.first() {
+            Some(first) => format!(
+                "all {} files were skipped (first: {first})",
+                report.skipped.len()
+            ),
+            None => "no pair file was given".to_string(),
+        };
+        return Err(invalid(
+            cameras_label,
+            "keypoint pair files",
+            format!(
+                "none names two views of these cameras, so there are no matches to write: {why}"
+            ),
+        ));
     }
     report.matches = points_i.len();
     let n = points_i.len();

@@ -1,7 +1,8 @@
 //! Importers and exporters between ProFuse files (`profuse_formats`) and the formats
 //! scenes arrive in: INRIA 3DGS PLY (import and export), instant-ngp/NeRF
-//! `transforms.json`, COLMAP sparse models (text and binary), ScanNet exports and
-//! `*_vh_clean_2.labels.ply`, NumPy `.npy`/`.npz`, and LangSplat `language_features/`.
+//! `transforms.json`, COLMAP sparse models (text and binary), LLFF `poses_bounds.npy`
+//! scenes, ScanNet exports and `*_vh_clean_2.labels.ply`, NumPy `.npy`/`.npz`, and
+//! LangSplat `language_features/`.
 //!
 //! # Design
 //!
@@ -13,6 +14,8 @@
 //!     `cx, cy` copied (instant-ngp already uses the corner origin).
 //!   - [`colmap`]: quaternion (w, x, y, z) → R, `tvec` → t; `cx, cy` copied (COLMAP puts
 //!     pixel centres at +0.5 too).
+//!   - [`llff`]: camera-to-world columns [down, right, back] → [right, down, forward],
+//!     inverted; principal point at the image centre, focal scaled by the downscale.
 //!   - [`scannet`]: camera-to-world inverted after the axis alignment `A · c2w`;
 //!     `cx, cy` + 0.5 (ScanNet's calibration puts pixel centres at integers).
 //!   - [`ply`]: INRIA's channel-major `f_rest_{c·R + k}` ↔ our `sh_rest[n, k, c]`.
@@ -32,6 +35,14 @@
 //!   - [`keypoints`]: keypoint-pair `.npz` files (XFeat, LightGlue, LoFTR) → `+0.5`
 //!     (OpenCV puts pixel centres at integers), undistorted with [`undistort`] when the
 //!     cameras carry OpenCV k1 k2 p1 p2, so that every later stage is pinhole.
+//! * **Bounded reads.** Files are opened only when they are regular files (a FIFO would
+//!   block, `/dev/zero` never ends); text inputs are capped ([`MAX_SMALL_TEXT_BYTES`],
+//!   [`MAX_JSON_BYTES`], [`ColmapOptions::max_text_bytes`]); `.npy` headers are capped at
+//!   NumPy's 10,000 bytes and 16 nesting levels; `.npz` members are inflated only up to
+//!   the size their `.npy` header fixes ([`npy::read_npz_capped`]).
+//! * **One rule for image paths** read from inputs ([`scene_relative_parts`]): relative,
+//!   inside the scene folder (no `..`), not absolute. An import with nothing to import
+//!   (no view, no pair) is an error, never an empty file.
 //! * **No printing.** Warnings (skipped frames, missing optional files) are returned in
 //!   each importer's report; the `scene-io` tool prints them.
 //! * **Atomic writes.** Exports go to a temporary file next to the target, then are
@@ -74,6 +85,7 @@ mod fsutil;
 pub mod geometry;
 pub mod keypoints;
 pub mod langsplat;
+pub mod llff;
 pub mod npy;
 pub mod ply;
 pub mod scannet;
@@ -82,8 +94,9 @@ pub mod undistort;
 
 pub use colmap::{import_colmap, ColmapImport, ColmapOptions, ColmapReport};
 pub use error::{Result, SceneError};
-pub use fsutil::image_dimensions;
+pub use fsutil::{image_dimensions, scene_relative_parts, MAX_JSON_BYTES, MAX_SMALL_TEXT_BYTES};
 pub use langsplat::{import_langsplat, LangSplatOptions, LangSplatReport};
+pub use llff::{import_llff, LlffOptions, LlffReport};
 pub use ply::{read_inria_ply, write_inria_ply, PlyReport, OPACITY_LOGIT_CLAMP};
 pub use scannet::{
     import_scannet_folder, read_scannet_labels_ply, read_scannet_npy, AxisAlignment, MeshReport,

@@ -8,16 +8,29 @@
 //! is [`SceneError::Invalid`]. Write: version 1.0 (2.0 when the header needs it).
 
 use std::collections::BTreeMap;
-use std::fs::File;
+
 use std::io::Read;
 use std::path::Path;
 
 use half::f16;
 
 use crate::error::{header_err, invalid, io_err, truncated, unsupported, Result, SceneError};
-use crate::fsutil::{read_bytes, show, write_atomically};
+use crate::fsutil::{open_regular, read_bytes, show, write_atomically};
 
 const MAGIC: &[u8; 6] = b"\x93NUMPY";
+
+/// Longest header dictionary read, in bytes: NumPy's own `np.load` default
+/// (`max_header_size=10000`, numpy/lib/format.py, "large headers may not be safe to load
+/// securely"). A plain array's header is under 200 bytes even with 32 dimensions.
+pub const MAX_HEADER_LEN: usize = 10_000;
+
+/// Deepest nesting of tuples and lists in a header (`shape` is depth 1 inside the
+/// dictionary; a structured `descr` a few more). The parser recurses once per level.
+pub const MAX_HEADER_DEPTH: usize = 16;
+
+/// Default cap on the bytes inflated from one `.npz` archive (all members together),
+/// [`read_npz_capped`]: 256 MiB, far above a keypoint-pair file (~16 bytes per match).
+pub const MAX_NPZ_BYTES: u64 = 256 << 20;
 
 /// Element types read and written.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -372,49 +385,138 @@ pub fn write_npy(path: impl AsRef<Path>, array: &NpyArray) -> Result<()> {
     write_atomically(path.as_ref(), |out| out.write_all(&bytes))
 }
 
-/// Reads every `.npy` member of a `.npz` archive, keyed by member name without `.npy`.
+/// Reads every `.npy` member of a `.npz` archive, keyed by member name without `.npy`,
+/// inflating at most [`MAX_NPZ_BYTES`] in all.
 pub fn read_npz(path: impl AsRef<Path>) -> Result<BTreeMap<String, NpyArray>> {
+    read_npz_capped(path, MAX_NPZ_BYTES)
+}
+
+/// [`read_npz`] inflating at most `max_bytes` in all. Each member is inflated through a
+/// bounded reader: first its `.npy` header, which fixes the member's exact size; that
+/// size must equal the size the zip declares and fit in what is left of `max_bytes`;
+/// then at most that many bytes + 1 are inflated, and a member that inflates to more or
+/// less is an error. The zip's declared size alone is never trusted.
+pub fn read_npz_capped(
+    path: impl AsRef<Path>,
+    max_bytes: u64,
+) -> Result<BTreeMap<String, NpyArray>> {
     let path = path.as_ref();
     let label = show(path);
-    let file = File::open(path).map_err(|e| io_err(&label, "cannot open", e))?;
+    let (file, _) = open_regular(path)?;
     let zip_err = |source| SceneError::Zip {
         path: label.clone(),
         source,
     };
-    let mut archive = zip::ZipArchive::new(file).map_err(zip_err)?;
+    let mut archive = zip::ZipArchive::new(std::io::BufReader::new(file)).map_err(zip_err)?;
     let mut arrays = BTreeMap::new();
+    let mut budget = max_bytes;
     for i in 0..archive.len() {
         let mut member = archive.by_index(i).map_err(zip_err)?;
         let Some(key) = member.name().strip_suffix(".npy").map(str::to_string) else {
             continue;
         };
-        let mut bytes = Vec::new();
-        member
-            .read_to_end(&mut bytes)
-            .map_err(|e| io_err(&label, "cannot decompress a member", e))?;
-        let array = parse_npy(&bytes, &format!("{label}[{key}.npy]"))?;
+        let member_label = format!("{label}[{key}.npy]");
+        let declared = member.size();
+        let bytes = inflate_member(&mut member, declared, budget, &member_label)?;
+        budget -= bytes.len() as u64;
+        let array = parse_npy(&bytes, &member_label)?;
         arrays.insert(key, array);
     }
     Ok(arrays)
 }
 
-/// Parses `.npy` bytes; `label` names the file in errors.
-pub fn parse_npy(bytes: &[u8], label: &str) -> Result<NpyArray> {
-    let (header, data_start) = split_header(bytes, label)?;
-    let dict = parse_dict(&header)
-        .map_err(|e| header_err(label, format!("header dictionary {header:?}: {e}")))?;
-    let (dtype, shape) = interpret_dict(&dict, label)?;
-    let count = shape
-        .iter()
-        .try_fold(1usize, |acc, d| acc.checked_mul(*d))
-        .and_then(|n| n.checked_mul(dtype.size()).map(|b| (n, b)));
-    let Some((_, nbytes)) = count else {
+/// Inflates one `.npy` member: header first, then exactly the bytes it announces.
+fn inflate_member(
+    member: &mut impl Read,
+    declared: u64,
+    budget: u64,
+    label: &str,
+) -> Result<Vec<u8>> {
+    let read_err = |e| io_err(label, "cannot decompress the member", e);
+    // Preamble: magic, version, and a 2-byte (v1) or 4-byte (v2, v3) header length.
+    let mut head = Vec::new();
+    member
+        .by_ref()
+        .take(10)
+        .read_to_end(&mut head)
+        .map_err(read_err)?;
+    if head.get(6).is_some_and(|major| *major >= 2) {
+        member
+            .by_ref()
+            .take(2)
+            .read_to_end(&mut head)
+            .map_err(read_err)?;
+    }
+    let header_len = preamble(&head, label)?.1;
+    check_header_len(header_len, label)?;
+    member
+        .by_ref()
+        .take(header_len as u64)
+        .read_to_end(&mut head)
+        .map_err(read_err)?;
+    let header = read_header(&head, label)?;
+    let expected = (header.data_start as u64).saturating_add(header.nbytes as u64);
+    if declared != expected {
         return Err(invalid(
             label,
-            "shape",
-            format!("{shape:?} has more elements than memory can hold"),
+            "zip uncompressed size",
+            format!(
+                "the zip declares {declared} bytes, but the .npy header (shape {:?} of {}) makes the member {expected} bytes",
+                header.shape,
+                header.dtype.descr()
+            ),
         ));
-    };
+    }
+    if expected > budget {
+        return Err(invalid(
+            label,
+            "size",
+            format!(
+                "the member inflates to {expected} bytes, above the {budget} bytes left of the archive's inflate cap"
+            ),
+        ));
+    }
+    let mut bytes = head;
+    let rest = expected - bytes.len() as u64;
+    bytes
+        .try_reserve_exact(usize::try_from(rest).unwrap_or(usize::MAX))
+        .map_err(|_| {
+            invalid(
+                label,
+                "size",
+                format!("{expected} bytes do not fit in memory"),
+            )
+        })?;
+    member
+        .by_ref()
+        .take(rest.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(read_err)?;
+    if bytes.len() as u64 != expected {
+        return Err(invalid(
+            label,
+            "size",
+            format!(
+                "the member inflates to {} bytes, its header and the zip say {expected}",
+                if bytes.len() as u64 > expected {
+                    format!("more than {expected}")
+                } else {
+                    bytes.len().to_string()
+                }
+            ),
+        ));
+    }
+    Ok(bytes)
+}
+
+/// Parses `.npy` bytes; `label` names the file in errors.
+pub fn parse_npy(bytes: &[u8], label: &str) -> Result<NpyArray> {
+    let NpyHeader {
+        dtype,
+        shape,
+        data_start,
+        nbytes,
+    } = read_header(bytes, label)?;
     let data = bytes.get(data_start..).unwrap_or_default();
     if data.len() < nbytes {
         return Err(truncated(
@@ -450,8 +552,43 @@ pub fn parse_npy(bytes: &[u8], label: &str) -> Result<NpyArray> {
     })
 }
 
-/// Checks magic and version; returns the header text and where the data starts.
-fn split_header(bytes: &[u8], label: &str) -> Result<(String, usize)> {
+/// What a `.npy` header says.
+struct NpyHeader {
+    dtype: NpyDtype,
+    shape: Vec<usize>,
+    /// Offset of the first data byte.
+    data_start: usize,
+    /// Data bytes the shape and dtype need.
+    nbytes: usize,
+}
+
+/// Parses the preamble and header dictionary at the start of `bytes`.
+fn read_header(bytes: &[u8], label: &str) -> Result<NpyHeader> {
+    let (header, data_start) = split_header(bytes, label)?;
+    let dict = parse_dict(&header)
+        .map_err(|e| header_err(label, format!("header dictionary {header:?}: {e}")))?;
+    let (dtype, shape) = interpret_dict(&dict, label)?;
+    let nbytes = shape
+        .iter()
+        .try_fold(1usize, |acc, d| acc.checked_mul(*d))
+        .and_then(|n| n.checked_mul(dtype.size()))
+        .ok_or_else(|| {
+            invalid(
+                label,
+                "shape",
+                format!("{shape:?} has more elements than memory can hold"),
+            )
+        })?;
+    Ok(NpyHeader {
+        dtype,
+        shape,
+        data_start,
+        nbytes,
+    })
+}
+
+/// Checks magic and version; returns (offset of the header dictionary, its length).
+fn preamble(bytes: &[u8], label: &str) -> Result<(usize, usize)> {
     if bytes.len() < MAGIC.len() + 2 {
         return Err(truncated(
             label,
@@ -484,6 +621,27 @@ fn split_header(bytes: &[u8], label: &str) -> Result<(String, usize)> {
         .iter()
         .rev()
         .fold(0usize, |acc, b| (acc << 8) | usize::from(*b));
+    Ok((start, header_len))
+}
+
+/// Refuses a header dictionary longer than [`MAX_HEADER_LEN`].
+fn check_header_len(header_len: usize, label: &str) -> Result<()> {
+    if header_len > MAX_HEADER_LEN {
+        return Err(header_err(
+            label,
+            format!(
+                "the header is {header_len} bytes, above the {MAX_HEADER_LEN}-byte limit of NumPy's own reader (np.load max_header_size)"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Checks magic, version and header length (present, and at most [`MAX_HEADER_LEN`]);
+/// returns the header text and where the data starts.
+fn split_header(bytes: &[u8], label: &str) -> Result<(String, usize)> {
+    let (start, header_len) = preamble(bytes, label)?;
+    let major = bytes.get(6).copied().unwrap_or(0);
     let end = start + header_len;
     let raw = bytes.get(start..end).ok_or_else(|| {
         truncated(
@@ -494,6 +652,7 @@ fn split_header(bytes: &[u8], label: &str) -> Result<(String, usize)> {
             ),
         )
     })?;
+    check_header_len(header_len, label)?;
     // Versions 1 and 2 use latin-1 headers, version 3 UTF-8; a valid header is ASCII.
     let text = if major == 3 {
         String::from_utf8(raw.to_vec())
@@ -518,6 +677,7 @@ fn parse_dict(text: &str) -> Result<BTreeMap<String, PyValue>, String> {
     let mut p = PyParser {
         chars: text.chars().collect(),
         pos: 0,
+        depth: 0,
     };
     p.expect('{')?;
     let mut dict = BTreeMap::new();
@@ -551,6 +711,8 @@ fn parse_dict(text: &str) -> Result<BTreeMap<String, PyValue>, String> {
 struct PyParser {
     chars: Vec<char>,
     pos: usize,
+    /// Open tuples and lists around the current position (at most [`MAX_HEADER_DEPTH`]).
+    depth: usize,
 }
 
 impl PyParser {
@@ -644,18 +806,29 @@ impl PyParser {
     }
 
     fn sequence(&mut self, close: char) -> Result<Vec<PyValue>, String> {
+        if self.depth >= MAX_HEADER_DEPTH {
+            return Err(format!(
+                "tuples and lists nested deeper than {MAX_HEADER_DEPTH} levels at character {}",
+                self.pos
+            ));
+        }
+        self.depth += 1;
         self.pos += 1;
         let mut items = Vec::new();
-        loop {
+        let result = loop {
             if self.eat(close) {
-                return Ok(items);
+                break Ok(items);
             }
-            items.push(self.value()?);
+            match self.value() {
+                Ok(v) => items.push(v),
+                Err(e) => break Err(e),
+            }
             if !self.eat(',') {
-                self.expect(close)?;
-                return Ok(items);
+                break self.expect(close).map(|()| items);
             }
-        }
+        };
+        self.depth -= 1;
+        result
     }
 }
 

@@ -19,17 +19,19 @@
 //! Image names are `file_path` relative to the JSON's directory, which is the scene
 //! directory. A `file_path` without an extension that does not exist is tried with
 //! `.png`, then `.jpg` (the NeRF-synthetic style). Frames whose image is missing are
-//! skipped with a warning in the report.
+//! skipped with a warning in the report. A `file_path` that is absolute or has a `..`
+//! component is an error ([`crate::scene_relative_parts`]: image paths stay inside the
+//! scene folder). The JSON is read up to [`crate::MAX_JSON_BYTES`] (64 MiB).
 
 use std::collections::BTreeMap;
-use std::path::{Component, Path, PathBuf};
+use std::path::{Path, PathBuf};
 
 use profuse_formats::Cameras;
 use serde::Serialize;
 use serde_json::{Map, Value};
 
 use crate::error::{invalid, missing, unsupported, Result, SceneError};
-use crate::fsutil::{image_dimensions, read_text, show};
+use crate::fsutil::{check_image_name, image_dimensions, read_text_capped, show, MAX_JSON_BYTES};
 use crate::geometry::{snap_to_rotation, world_to_camera_from_c2w, Mat3};
 
 /// What [`read_transforms`] did.
@@ -52,9 +54,11 @@ pub fn read_transforms(path: impl AsRef<Path>) -> Result<(Cameras, TransformsRep
     let path = path.as_ref();
     let label = show(path);
     let json: Value =
-        serde_json::from_str(&read_text(path)?).map_err(|source| SceneError::Json {
-            path: label.clone(),
-            source,
+        serde_json::from_str(&read_text_capped(path, MAX_JSON_BYTES, "")?).map_err(|source| {
+            SceneError::Json {
+                path: label.clone(),
+                source,
+            }
         })?;
     let top = json
         .as_object()
@@ -178,13 +182,8 @@ impl Keys<'_> {
                     "a relative image path string",
                 )
             })?;
-        let parts = relative_parts(file).ok_or_else(|| {
-            invalid(
-                self.label,
-                format!("frames[{}].file_path", self.index),
-                format!("{file:?} is not a relative path inside the scene directory"),
-            )
-        })?;
+        let field = format!("frames[{}].file_path", self.index);
+        let parts = check_image_name(self.label, &field, file)?;
         let name = parts.join("/");
         let path = base.join(parts.iter().collect::<PathBuf>());
         if path.is_file() {
@@ -342,35 +341,5 @@ impl Keys<'_> {
             snap_to_rotation(&r_cv).map_err(|e| invalid(self.label, &field, e.to_string()))?;
         let centre = [m[0][3], m[1][3], m[2][3]];
         Ok(world_to_camera_from_c2w(&r_cv, centre))
-    }
-}
-
-/// The normal components of a relative path (`./a/b.png` → `["a", "b.png"]`), or `None`
-/// for an absolute path or an empty one.
-fn relative_parts(file: &str) -> Option<Vec<String>> {
-    let mut parts = Vec::new();
-    for c in Path::new(file).components() {
-        match c {
-            Component::Normal(s) => parts.push(s.to_string_lossy().into_owned()),
-            Component::CurDir => {}
-            Component::ParentDir => parts.push("..".to_string()),
-            Component::RootDir | Component::Prefix(_) => return None,
-        }
-    }
-    (!parts.is_empty()).then_some(parts)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::relative_parts;
-
-    #[test]
-    fn relative_parts_normalise() {
-        assert_eq!(
-            relative_parts("./images/a.png"),
-            Some(vec!["images".to_string(), "a.png".to_string()])
-        );
-        assert_eq!(relative_parts("/abs/a.png"), None);
-        assert_eq!(relative_parts("."), None);
     }
 }

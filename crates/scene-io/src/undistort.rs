@@ -20,7 +20,7 @@
 //! assert!((back[0] - p[0]).abs() < 1e-6 && (back[1] - p[1]).abs() < 1e-6);
 //! ```
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use image::ImageEncoder;
 
@@ -30,7 +30,7 @@ use profuse_formats::Cameras;
 use serde::Serialize;
 
 use crate::error::{Result, SceneError};
-use crate::fsutil::{show, write_atomically};
+use crate::fsutil::{check_image_name, open_image, show, write_atomically};
 
 /// Undistorts an interleaved RGB8 image to the pinhole camera with the same size and
 /// intrinsics: output pixel centre `(x + 0.5, y + 0.5)` is distorted into the input and
@@ -112,9 +112,11 @@ pub fn undistort_scene(
     let mut report = UndistortReport::default();
     let mut names = Vec::with_capacity(cameras.len());
     for (v, name) in cameras.image_names.iter().enumerate() {
-        let src = scene_dir.join(name);
+        let parts = check_image_name(&show(scene_dir), &format!("image_names[{v}]"), name)?;
+        let src = scene_dir.join(parts.iter().collect::<PathBuf>());
         let label = show(&src);
-        let img = image::open(&src)
+        let img = open_image(&src)?
+            .decode()
             .map_err(|source| SceneError::Image {
                 path: label.clone(),
                 source,

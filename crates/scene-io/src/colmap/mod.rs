@@ -9,7 +9,11 @@
 //!   only when k3..k6 are zero; fisheye and other models are errors naming the model.
 //!   `distortion` is written when any view has a non-zero coefficient.
 //! * Image names are `images_prefix` + COLMAP's name; views are sorted by name so the
-//!   output does not depend on COLMAP's image ids.
+//!   output does not depend on COLMAP's image ids. A name that is absolute or has a `..`
+//!   component is an error ([`crate::scene_relative_parts`]), and so is a model without
+//!   any registered image.
+//! * A directory with only some of the model files is an error naming the missing ones.
+//!   Text files are read up to [`ColmapOptions::max_text_bytes`].
 //!
 //! Points seed Gaussians the way INRIA 3DGS initialises from SfM points
 //! ([`seed_gaussians`]).
@@ -20,7 +24,7 @@ mod text;
 
 use std::collections::BTreeMap;
 use std::num::NonZeroUsize;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
@@ -32,8 +36,8 @@ pub use model::{
     CameraModel, ColmapCamera, ColmapFormat, ColmapImage, ColmapModel, ColmapPoint, ModelFiles,
 };
 
-use crate::error::{invalid, missing, unsupported, Result};
-use crate::fsutil::show;
+use crate::error::{invalid, missing, unsupported, Result, SceneError};
+use crate::fsutil::{check_image_name, show};
 
 /// Degree-0 SH basis constant: colour = `SH_C0` · dc + 0.5.
 pub use profuse_formats::camera::SH_C0;
@@ -45,18 +49,26 @@ pub const SEED_OPACITY: f64 = 0.1;
 /// so duplicate points do not get a zero (log −inf) scale.
 pub const MIN_MEAN_SQUARED_DISTANCE: f64 = 1e-7;
 
+/// Default cap on each file of a text model, [`ColmapOptions::max_text_bytes`] (2 GiB;
+/// reading a text model takes about 3x its size in memory).
+pub const MAX_TEXT_BYTES: u64 = 2 << 30;
+
 /// Import options.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ColmapOptions {
     /// Prepended to COLMAP's image names to make them relative to the scene directory
     /// (default `images/`; empty for none).
     pub images_prefix: String,
+    /// Largest `cameras.txt`/`images.txt`/`points3D.txt` read (default
+    /// [`MAX_TEXT_BYTES`]); a bigger file is an error, not an attempt to fill memory.
+    pub max_text_bytes: u64,
 }
 
 impl Default for ColmapOptions {
     fn default() -> Self {
         ColmapOptions {
             images_prefix: "images/".to_string(),
+            max_text_bytes: MAX_TEXT_BYTES,
         }
     }
 }
@@ -85,37 +97,85 @@ pub struct ColmapImport {
 }
 
 /// Finds the model files in `dir`: binary when `cameras.bin`, `images.bin` and
-/// `points3D.bin` exist, else text when the three `.txt` files exist.
+/// `points3D.bin` exist, else text when the three `.txt` files exist. When neither set
+/// is complete, the error names the files that are missing from the most complete one.
 pub fn find_model(dir: impl AsRef<Path>) -> Result<ModelFiles> {
     let dir = dir.as_ref();
-    for format in [ColmapFormat::Binary, ColmapFormat::Text] {
+    let sets = [ColmapFormat::Binary, ColmapFormat::Text].map(|format| {
         let ext = format.extension();
-        let files = ModelFiles {
+        ModelFiles {
             format,
             cameras: dir.join(format!("cameras.{ext}")),
             images: dir.join(format!("images.{ext}")),
             points: dir.join(format!("points3D.{ext}")),
-        };
-        if files.cameras.is_file() && files.images.is_file() && files.points.is_file() {
-            return Ok(files);
+        }
+    });
+    let present = |files: &ModelFiles| {
+        [&files.cameras, &files.images, &files.points]
+            .into_iter()
+            .filter(|p| p.is_file())
+            .count()
+    };
+    // Binary first; on a tie (both incomplete) the binary set is named.
+    let best = sets
+        .iter()
+        .max_by_key(|f| (present(f), f.format == ColmapFormat::Binary));
+    match best {
+        Some(files) if present(files) == 3 => Ok(files.clone()),
+        Some(files) if present(files) > 0 => Err(incomplete_model(dir, files)),
+        _ => {
+            let hint = if dir.join("0").is_dir() {
+                " (the directory has a `0/` subdirectory: did you mean sparse/0?)"
+            } else {
+                ""
+            };
+            Err(missing(
+                &show(dir),
+                "COLMAP model files",
+                format!(
+                    "cameras.bin, images.bin, points3D.bin or cameras.txt, images.txt, points3D.txt{hint}"
+                ),
+            ))
         }
     }
-    let hint = if dir.join("0").is_dir() {
-        " (the directory has a `0/` subdirectory: did you mean sparse/0?)"
-    } else {
-        ""
-    };
-    Err(missing(
-        &show(dir),
-        "COLMAP model files",
-        format!(
-            "cameras.bin, images.bin, points3D.bin or cameras.txt, images.txt, points3D.txt{hint}"
-        ),
-    ))
 }
 
-/// Reads a sparse model from a directory (format auto-detected, see [`find_model`]).
+/// The error of a model directory with some but not all files of one format.
+fn incomplete_model(dir: &Path, files: &ModelFiles) -> SceneError {
+    let name = |p: &Path| {
+        p.file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    let all = [&files.cameras, &files.images, &files.points];
+    let (found, absent): (Vec<_>, Vec<_>) = all.into_iter().partition(|p| p.is_file());
+    let list = |v: &[&PathBuf]| v.iter().map(|p| name(p)).collect::<Vec<_>>().join(", ");
+    let why = if absent.iter().any(|p| **p == files.images) {
+        "images holds every registered image and its pose: without it there are no views to import"
+    } else if absent.iter().any(|p| **p == files.cameras) {
+        "cameras holds the intrinsics the images refer to"
+    } else {
+        "points3D holds the sparse points (export the whole model, e.g. `colmap model_converter --output_type BIN`)"
+    };
+    missing(
+        &show(dir),
+        list(&absent),
+        format!(
+            "the {} model files cameras, images and points3D; found only {} ({why})",
+            files.format.name(),
+            list(&found)
+        ),
+    )
+}
+
+/// Reads a sparse model from a directory (format auto-detected, see [`find_model`]),
+/// text files up to [`MAX_TEXT_BYTES`].
 pub fn read_colmap_model(dir: impl AsRef<Path>) -> Result<ColmapModel> {
+    read_colmap_model_capped(dir, MAX_TEXT_BYTES)
+}
+
+/// [`read_colmap_model`] with text files capped at `max_text_bytes`.
+pub fn read_colmap_model_capped(dir: impl AsRef<Path>, max_text_bytes: u64) -> Result<ColmapModel> {
     let files = find_model(dir)?;
     let (cameras, images, points) = match files.format {
         ColmapFormat::Binary => (
@@ -124,9 +184,9 @@ pub fn read_colmap_model(dir: impl AsRef<Path>) -> Result<ColmapModel> {
             binary::read_points(&files.points)?,
         ),
         ColmapFormat::Text => (
-            text::read_cameras(&files.cameras)?,
-            text::read_images(&files.images)?,
-            text::read_points(&files.points)?,
+            text::read_cameras(&files.cameras, max_text_bytes)?,
+            text::read_images(&files.images, max_text_bytes)?,
+            text::read_points(&files.points, max_text_bytes)?,
         ),
     };
     Ok(ColmapModel {
@@ -139,7 +199,7 @@ pub fn read_colmap_model(dir: impl AsRef<Path>) -> Result<ColmapModel> {
 
 /// Reads a sparse model and converts it.
 pub fn import_colmap(dir: impl AsRef<Path>, options: &ColmapOptions) -> Result<ColmapImport> {
-    let model = read_colmap_model(dir)?;
+    let model = read_colmap_model_capped(dir, options.max_text_bytes)?;
     let cameras = colmap_cameras(&model, options)?;
     let gaussians = colmap_gaussians(&model);
     let report = ColmapReport {
@@ -160,6 +220,13 @@ pub fn import_colmap(dir: impl AsRef<Path>, options: &ColmapOptions) -> Result<C
 pub fn colmap_cameras(model: &ColmapModel, options: &ColmapOptions) -> Result<Cameras> {
     let images_label = show(&model.files.images);
     let cameras_label = show(&model.files.cameras);
+    if model.images.is_empty() {
+        return Err(invalid(
+            &images_label,
+            "images",
+            "the model has no registered image, so there are no views to import",
+        ));
+    }
     let mut order: Vec<&ColmapImage> = model.images.iter().collect();
     order.sort_by(|a, b| a.name.cmp(&b.name));
     if let Some(pair) = order
@@ -196,7 +263,14 @@ pub fn colmap_cameras(model: &ColmapModel, options: &ColmapOptions) -> Result<Ca
                 format!("qvec {:?} is zero or not finite", image.qvec),
             )
         })?;
-        names.push(join_prefix(&options.images_prefix, &image.name));
+        check_image_name(&images_label, &format!("{field} NAME"), &image.name)?;
+        let name = join_prefix(&options.images_prefix, &image.name);
+        check_image_name(
+            &images_label,
+            &format!("{field} NAME with --images-prefix"),
+            &name,
+        )?;
+        names.push(name);
         sizes.push(camera_size(camera, &cameras_label)?);
         intrinsics.push(k);
         distortion.push(d);

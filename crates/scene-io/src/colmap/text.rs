@@ -7,7 +7,7 @@ use std::str::FromStr;
 
 use super::model::{insert_camera, CameraModel, ColmapCamera, ColmapImage, ColmapPoint};
 use crate::error::{parse_err, unsupported, Result};
-use crate::fsutil::{read_text, show};
+use crate::fsutil::{read_text_capped, show};
 
 /// Whitespace-separated fields of one line, parsed with errors naming file, line, field.
 struct Fields<'a> {
@@ -79,9 +79,9 @@ fn content_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
         .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
 }
 
-pub(crate) fn read_cameras(path: &Path) -> Result<BTreeMap<u32, ColmapCamera>> {
+pub(crate) fn read_cameras(path: &Path, max_bytes: u64) -> Result<BTreeMap<u32, ColmapCamera>> {
     let label = show(path);
-    let text = read_text(path)?;
+    let text = read_text_capped(path, max_bytes, " (raise it with --max-text-mb)")?;
     let mut cameras = BTreeMap::new();
     for (line, content) in content_lines(&text) {
         let mut f = Fields::new(content, &label, line);
@@ -120,9 +120,9 @@ pub(crate) fn read_cameras(path: &Path) -> Result<BTreeMap<u32, ColmapCamera>> {
     Ok(cameras)
 }
 
-pub(crate) fn read_images(path: &Path) -> Result<Vec<ColmapImage>> {
+pub(crate) fn read_images(path: &Path, max_bytes: u64) -> Result<Vec<ColmapImage>> {
     let label = show(path);
-    let text = read_text(path)?;
+    let text = read_text_capped(path, max_bytes, " (raise it with --max-text-mb)")?;
     let mut lines = text.lines().enumerate().map(|(i, l)| (i + 1, l));
     let mut images = Vec::new();
     // As in COLMAP's reader: after an image line, the next line holds its points2D,
@@ -182,9 +182,9 @@ fn parse_points2d(text: &str, label: &str, line: usize) -> Result<Vec<([f64; 2],
     Ok(points)
 }
 
-pub(crate) fn read_points(path: &Path) -> Result<Vec<ColmapPoint>> {
+pub(crate) fn read_points(path: &Path, max_bytes: u64) -> Result<Vec<ColmapPoint>> {
     let label = show(path);
-    let text = read_text(path)?;
+    let text = read_text_capped(path, max_bytes, " (raise it with --max-text-mb)")?;
     let mut points = Vec::new();
     for (line, content) in content_lines(&text) {
         let mut f = Fields::new(content, &label, line);

@@ -8,8 +8,8 @@ use clap::{Parser, Subcommand};
 #[command(
     name = "scene-io",
     version,
-    about = "Import INRIA PLY, transforms.json, COLMAP, ScanNet and LangSplat data into ProFuse files; export Gaussians to INRIA PLY",
-    long_about = "Import INRIA PLY, transforms.json, COLMAP, ScanNet and LangSplat data into ProFuse files \
+    about = "Import INRIA PLY, transforms.json, COLMAP, LLFF, ScanNet and LangSplat data into ProFuse files; export Gaussians to INRIA PLY",
+    long_about = "Import INRIA PLY, transforms.json, COLMAP, LLFF, ScanNet and LangSplat data into ProFuse files \
                   (SPEC.md), and export Gaussians to INRIA PLY. Prints one JSON report on stdout; warnings \
                   go to stderr. Exit code 1 on failure, with nothing written."
 )]
@@ -64,6 +64,23 @@ pub enum Command {
         /// (use "" for none).
         #[arg(long, default_value = "images/")]
         images_prefix: String,
+        /// Largest text model file read, in MiB (a bigger one is an error).
+        #[arg(long, value_name = "MIB", default_value_t = scene_io::colmap::MAX_TEXT_BYTES >> 20)]
+        max_text_mb: u64,
+    },
+    /// LLFF scene (poses_bounds.npy, the NeRF forward-facing format) → cameras file. Row i
+    /// of the (N, 17) array is the i-th image (sorted) of images/ or images_<FACTOR>/;
+    /// LLFF's [down, right, back] axes become OpenCV's, the focal length is scaled to
+    /// the chosen images.
+    Llff {
+        /// The scene directory holding poses_bounds.npy (or the .npy file itself).
+        scene: PathBuf,
+        /// The cameras file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Downscale factor: 1 reads images/, N reads images_N/ (LLFF's minified copies).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+        factor: u32,
     },
     /// ScanNet SensReader export (color/, pose/, intrinsic/) → cameras file, axis-aligned
     /// by <scene>.txt when present; frames with non-finite poses are skipped.

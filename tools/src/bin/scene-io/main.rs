@@ -15,14 +15,14 @@ use scene_io::keypoints::{import_keypoint_pairs, KeypointOptions};
 use scene_io::langsplat::{import_langsplat, LangSplatOptions};
 use scene_io::ply::{read_inria_ply, write_inria_ply};
 use scene_io::scannet::{
-    align_mesh, import_scannet_folder, read_axis_alignment, read_scannet_labels_ply,
-    read_scannet_npy, AxisAlignment, ScannetOptions,
+    align_mesh, read_axis_alignment, read_scannet_labels_ply, read_scannet_npy,
 };
 use scene_io::transforms::read_transforms;
 use scene_io::undistort::undistort_scene;
 use serde_json::{json, Map, Value};
 
 mod args;
+mod importers;
 use args::{Cli, Command};
 
 fn main() -> ExitCode {
@@ -60,13 +60,14 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             out,
             points_out,
             images_prefix,
-        } => colmap(
-            &sparse_dir,
-            &out,
-            points_out.as_deref(),
-            images_prefix,
-            quiet,
-        ),
+            max_text_mb,
+        } => {
+            let options = ColmapOptions {
+                images_prefix,
+                max_text_bytes: max_text_mb.saturating_mul(1 << 20),
+            };
+            colmap(&sparse_dir, &out, points_out.as_deref(), &options, quiet)
+        }
         Command::Scannet {
             scene_dir,
             out,
@@ -76,21 +77,11 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             width,
             height,
         } => {
-            let axis_alignment = match (axis_align, no_axis_align) {
-                (_, true) => AxisAlignment::Off,
-                (Some(txt), false) => AxisAlignment::Matrix(read_axis_alignment(&txt)?),
-                (None, false) => AxisAlignment::Auto,
-            };
-            let options = ScannetOptions {
-                stride: usize::try_from(stride)?,
-                axis_alignment,
-                image_size: width.zip(height).map(|(w, h)| [w, h]),
-            };
-            let (mut cams, report) = import_scannet_folder(&scene_dir, &options)?;
-            warn_all(quiet, &report.warnings);
-            stamp(&mut cams.extra, "scannet");
-            save(&cams, "scannet", &scene_dir, &out, &report, quiet)
+            let size = width.zip(height).map(|(w, h)| [w, h]);
+            let align = (axis_align, no_axis_align);
+            importers::scannet(&scene_dir, &out, stride, align, size, quiet)
         }
+        Command::Llff { scene, out, factor } => importers::llff(&scene, &out, factor, quiet),
         Command::ScannetMesh {
             labels_ply,
             out,
@@ -178,10 +169,10 @@ fn colmap(
     sparse_dir: &Path,
     out: &Path,
     points_out: Option<&Path>,
-    images_prefix: String,
+    options: &ColmapOptions,
     quiet: bool,
 ) -> Result<Value, BoxError> {
-    let mut import = import_colmap(sparse_dir, &ColmapOptions { images_prefix })?;
+    let mut import = import_colmap(sparse_dir, options)?;
     stamp(&mut import.cameras.extra, "colmap");
     stamp(&mut import.gaussians.extra, "colmap");
     write_cameras_and_points(
