@@ -109,8 +109,14 @@ fn python_reader_agrees_with_rust_on_every_golden_vector() {
         return;
     }
     // The reader's tests, then the writers' (every kind written by Python is read by
-    // `profuse inspect`, and the golden vectors are rewritten byte for byte).
-    for script in ["test_profuse_formats.py", "test_writers.py"] {
+    // `profuse inspect`, and the golden vectors are rewritten byte for byte), then hostile
+    // inputs (issue 20 items 2 and 3: huge empty shapes, and seeded mutations of the golden
+    // vectors that must give a FormatError or a record in time, agreeing with Rust).
+    for script in [
+        "test_profuse_formats.py",
+        "test_writers.py",
+        "test_hostile_inputs.py",
+    ] {
         let out = Command::new("python3")
             .arg(format!("formats/python/{script}"))
             .env("PROFUSE_RUST_INSPECT", env!("CARGO_BIN_EXE_profuse"))

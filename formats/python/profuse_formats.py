@@ -732,11 +732,38 @@ def _check_data_layout(path: str, tensors: dict[str, TensorInfo], data_len: int)
         )
 
 
+_NP_MAX_BYTES = 2**63 - 1
+
+
+def _empty_array(info: TensorInfo) -> np.ndarray:
+    """A tensor with no elements, made without reading the file.
+
+    SPEC.md allows any dimension next to a 0 (``[0, 2**62]`` is a valid empty tensor), but
+    numpy cannot represent a shape whose dimensions reach 2^63 or whose non-zero
+    dimensions span 2^63 bytes or more (issue 20 item 2: these raised ``ValueError``).
+    Such a tensor is read as an empty array of the same rank with every dimension 0; the
+    header's shape stays in :attr:`Container.tensors` (and the inspect report), and the
+    record's dimension fields (``dim``, ``height``, ``width``, ``k``) hold the header's
+    values.
+    """
+    dtype = _NUMPY_DTYPES[info.dtype]
+    span = dtype.itemsize
+    for d in info.shape:
+        span *= max(d, 1)
+    if span <= _NP_MAX_BYTES:
+        return np.empty(info.shape, dtype=dtype)
+    return np.empty((0,) * len(info.shape), dtype=dtype)
+
+
 def _load_arrays(c: Container, names: list[str]) -> dict[str, np.ndarray]:
-    """Loads tensors of a validated container with the ``safetensors`` package."""
+    """Loads tensors of a validated container with the ``safetensors`` package; tensors
+    with no elements are made directly (:func:`_empty_array`)."""
+    arrays: dict[str, np.ndarray] = {
+        n: _empty_array(c.tensors[n]) for n in names if c.tensors[n].numel == 0
+    }
+    names = [n for n in names if n not in arrays]
     if not names:
-        return {}
-    arrays: dict[str, np.ndarray] = {}
+        return arrays
     try:
         with safe_open(os.fspath(c.fs_path), framework="np") as f:
             for name in names:
@@ -744,7 +771,7 @@ def _load_arrays(c: Container, names: list[str]) -> dict[str, np.ndarray]:
     except SafetensorError:
         # safetensors refuses a few headers that SPEC.md allows (a repeated
         # `__metadata__` key); read those tensors at the offsets validated above.
-        arrays = {}
+        arrays = {n: a for n, a in arrays.items() if c.tensors[n].numel == 0}
     except OSError as e:
         raise _io_error(c.path, "cannot map", e) from None
     for name in names:
@@ -1607,7 +1634,8 @@ def _masks(c: Container) -> Masks:
     none = _LABEL_NONE[label_dtype]
     labels = a["labels"]
     plane = height * width
-    flat_labels = labels.reshape(len(names), plane)
+    # With no view the plane is never indexed (H x W may then exceed what numpy can shape).
+    flat_labels = labels.reshape(len(names), plane) if names else labels
     for view in range(len(names)):
         count = int(offsets[view + 1]) - int(offsets[view])
         if count > none:
@@ -2014,6 +2042,10 @@ def _topk(c: Container) -> TopK:
     i = _first((flat_w < 0.0) | (flat_w > 1.0))
     if i is not None:
         raise _out_of_range(path, "weights", i, _display_float(flat_w[i]), "a weight in [0, 1]")
+    if height * width == 0:
+        # No pixel: nothing below has an element (and K, a header value, may be too large
+        # for numpy to shape a [pixels, K] view; issue 20 item 2).
+        return _topk_record(c, num_gaussians, ids, weights, trans, height, width, k)
     w2 = weights.reshape(-1, k)
     pad = ids.reshape(-1, k) == NO_GAUSSIAN
     # The first defect in (pixel, slot) order: padding/weight mismatch, then ordering.
@@ -2034,15 +2066,33 @@ def _topk(c: Container) -> TopK:
     i = _first((flat_t < 0.0) | (flat_t > 1.0))
     if i is not None:
         raise _out_of_range(path, "transmittance", i, _display_float(flat_t[i]), "a transmittance in [0, 1]")
-    totals = np.zeros(w2.shape[0], np.float64)
-    for slot in range(k):  # index order, as the Rust reader sums
-        totals += w2[:, slot].astype(np.float64)
-    totals += flat_t.astype(np.float64)
+    totals = _topk_totals(w2, flat_t)
     i = _first(totals > 1.0 + WEIGHT_SUM_TOLERANCE)
     if i is not None:
         raise _invalid(path, "weights", f"pixel {i}: weights plus transmittance sum to {totals[i]!r}, more than 1")
+    return _topk_record(c, num_gaussians, ids, weights, trans, height, width, k)
+
+
+def _topk_totals(w2: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """Per pixel, Σ weights + T summed in f64 in slot order as the Rust reader sums
+    (``cumsum`` is sequential), a bounded number of pixels at a time: no loop runs per
+    slot, so the work is bounded by the data, not by K (issue 20 item 2: a Python loop
+    over K = 2^31 slots hung on a 400-byte file)."""
+    pixels, k = w2.shape
+    totals = np.empty(pixels, dtype=np.float64)
+    chunk = max(1, (1 << 22) // k)
+    for start in range(0, pixels, chunk):
+        x = w2[start : start + chunk].astype(np.float64)
+        totals[start : start + chunk] = np.cumsum(x, axis=1)[:, -1]
+    return totals + trans.astype(np.float64)
+
+
+def _topk_record(
+    c: Container, num_gaussians: int, ids: np.ndarray, weights: np.ndarray, trans: np.ndarray,
+    height: int, width: int, k: int,
+) -> TopK:
     return TopK(
-        path=path,
+        path=c.path,
         metadata=dict(c.metadata),
         num_gaussians=num_gaussians,
         ids=ids,

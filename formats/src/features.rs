@@ -3,8 +3,8 @@
 use std::collections::BTreeMap;
 
 use crate::check::{
-    check_finite, check_finite_floats, check_flags, check_len, check_unit_rows, invalid,
-    out_of_range, Floats, TensorReader,
+    check_count, check_finite, check_finite_floats, check_flags, check_len, check_unit_rows,
+    invalid, out_of_range, Floats, TensorReader,
 };
 use crate::container::{Buffer, Container};
 use crate::error::Result;
@@ -63,11 +63,11 @@ impl FileKind for Features {
                 "[N, D] with D >= 1".to_string(),
             ));
         }
-        check_len(
+        check_count(
             path,
             "features",
             self.features.len(),
-            n * self.dim,
+            &[n, self.dim],
             "values (N x D, N from `valid`)",
         )?;
         check_flags(path, "valid", &self.valid)?;

@@ -257,26 +257,30 @@ impl FusePartial {
             (
                 "mask_proposal",
                 self.mask_proposal.as_ref().map(|p| p.len()),
-                m,
+                Some(m),
                 "M",
             ),
             (
                 "mask_features",
                 Some(self.mask_features.len()),
-                m * self.dim,
+                m.checked_mul(self.dim),
                 "M x D",
             ),
-            ("mask_mass", Some(self.mask_mass.len()), m, "M"),
+            ("mask_mass", Some(self.mask_mass.len()), Some(m), "M"),
             (
                 "w_offsets",
                 Some(self.w_offsets.len()),
-                self.num_gaussians + 1,
+                self.num_gaussians.checked_add(1),
                 "N + 1",
             ),
-            ("w_sums", Some(self.w_sums.len()), e, "E"),
+            ("w_sums", Some(self.w_sums.len()), Some(e), "E"),
         ];
+        // Expected counts are checked sums and products of header values: one that
+        // overflows matches no length (issue 20 item 1).
         for (tensor, len, expected, what) in lengths {
-            if let Some(len) = len.filter(|l| *l != expected) {
+            if let Some(len) = len.filter(|l| Some(*l) != expected) {
+                let expected =
+                    expected.map_or_else(|| "more than 2^64".to_string(), |e| e.to_string());
                 return Err(shape_err(
                     path,
                     tensor,

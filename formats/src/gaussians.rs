@@ -3,7 +3,7 @@
 use std::collections::BTreeMap;
 
 use crate::check::{
-    check_finite, check_len, invalid, meta_err, out_of_range, shape_err, TensorReader,
+    check_finite, check_len, invalid, meta_err, out_of_range, product, shape_err, TensorReader,
 };
 use crate::container::{Buffer, Container};
 use crate::error::Result;
@@ -142,7 +142,7 @@ impl FileKind for Gaussians {
             }
             Some(rest) => {
                 let coeffs = self.sh_rest_coeffs();
-                if rest.len() != n * coeffs * 3 {
+                if product(&[n, coeffs, 3]) != Some(rest.len()) {
                     return Err(shape_err(
                         path,
                         "sh_rest",

@@ -3,8 +3,8 @@
 use std::collections::BTreeMap;
 
 use crate::check::{
-    check_finite_floats, check_len, check_offsets, check_unit_rows, out_of_range, Floats, Labels,
-    TensorReader,
+    check_count, check_finite_floats, check_len, check_offsets, check_unit_rows, out_of_range,
+    Floats, Labels, TensorReader,
 };
 use crate::container::{Buffer, Container};
 use crate::error::Result;
@@ -87,11 +87,11 @@ impl FileKind for Masks {
 
     fn validate(&self, path: &str) -> Result<()> {
         let v = self.view_names.len();
-        check_len(
+        check_count(
             path,
             "labels",
             self.labels.len(),
-            v * self.height * self.width,
+            &[v, self.height, self.width],
             "pixels (V x H x W)",
         )?;
         check_len(
@@ -119,7 +119,9 @@ impl FileKind for Masks {
         )?;
         check_offsets(path, "mask_offsets", &self.mask_offsets, m as u64)?;
         let none = self.labels.none_value();
-        let plane = self.height * self.width;
+        // H x W only matters when there is a view; with none it may overflow (a header
+        // value), and then no plane is ever indexed.
+        let plane = if v == 0 { 0 } else { self.height * self.width };
         for view in 0..v {
             let count = self.masks_in_view(view) as u64;
             if count > u64::from(none) {

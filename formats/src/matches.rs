@@ -4,8 +4,8 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use crate::check::{
-    check_finite, check_finite_floats, check_len, check_offsets, check_unit_interval, invalid,
-    meta_err, out_of_range, Floats, TensorReader,
+    check_count, check_finite, check_finite_floats, check_len, check_offsets, check_unit_interval,
+    invalid, meta_err, out_of_range, Floats, TensorReader,
 };
 use crate::container::{Buffer, Container};
 use crate::error::Result;
@@ -85,19 +85,19 @@ impl FileKind for Matches {
     }
 
     fn validate(&self, path: &str) -> Result<()> {
-        let cells = self.pairs.len() * self.height * self.width;
-        check_len(
+        let cells = [self.pairs.len(), self.height, self.width];
+        check_count(
             path,
             "warp",
             self.warp.len(),
-            cells * 2,
+            &[cells[0], cells[1], cells[2], 2],
             "values (P x H x W x 2)",
         )?;
-        check_len(
+        check_count(
             path,
             "certainty",
             self.certainty.len(),
-            cells,
+            &cells,
             "values (P x H x W)",
         )?;
         check_pairs(path, &self.pairs, self.num_views)?;

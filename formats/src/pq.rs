@@ -4,7 +4,8 @@
 use std::collections::BTreeMap;
 
 use crate::check::{
-    check_finite, check_flags, check_len, invalid, meta_err, out_of_range, shape_err, TensorReader,
+    check_count, check_finite, check_flags, check_len, invalid, meta_err, out_of_range, shape_err,
+    TensorReader,
 };
 use crate::container::{Buffer, Container};
 use crate::error::Result;
@@ -85,18 +86,18 @@ impl FileKind for Pq {
                 "[M, 256, dsub] with M, dsub >= 1".to_string(),
             ));
         }
-        check_len(
+        check_count(
             path,
             "centroids",
             self.centroids.len(),
-            self.m * KSUB * self.dsub,
+            &[self.m, KSUB, self.dsub],
             "values (M x 256 x dsub)",
         )?;
-        check_len(
+        check_count(
             path,
             "codes",
             self.codes.len(),
-            n * self.m,
+            &[n, self.m],
             "values (N x M, N from `valid`)",
         )?;
         check_len(path, "norms", self.norms.len(), n, "values, one per vector")?;

@@ -2,7 +2,9 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use crate::check::{check_finite, check_len, invalid, meta_err, out_of_range, TensorReader};
+use crate::check::{
+    check_count, check_finite, check_len, invalid, meta_err, out_of_range, TensorReader,
+};
 use crate::container::{Buffer, Container};
 use crate::error::Result;
 use crate::kind::{FileKind, Kind};
@@ -73,11 +75,11 @@ impl FileKind for Prompts {
                 "[Q, D] with D >= 1".to_string(),
             ));
         }
-        check_len(
+        check_count(
             path,
             "embeddings",
             self.embeddings.len(),
-            q * self.dim,
+            &[q, self.dim],
             "values (Q x D, Q from metadata `names`)",
         )?;
         let mut seen = BTreeSet::new();

@@ -4,7 +4,7 @@
 use std::collections::BTreeMap;
 
 use crate::check::{
-    check_finite, check_ids, check_len, invalid, out_of_range, shape_err, TensorReader,
+    check_count, check_finite, check_ids, invalid, out_of_range, shape_err, TensorReader,
 };
 use crate::container::{Buffer, Container};
 use crate::error::Result;
@@ -58,34 +58,28 @@ impl FileKind for TopK {
     }
 
     fn validate(&self, path: &str) -> Result<()> {
-        let pixels = self.width * self.height;
+        let cells = [self.height, self.width, self.k];
         if self.k == 0 {
             return Err(shape_err(
                 path,
                 "ids",
-                vec![self.height, self.width, 0],
+                cells.to_vec(),
                 "[H, W, K] with K >= 1".to_string(),
             ));
         }
-        check_len(
-            path,
-            "ids",
-            self.ids.len(),
-            pixels * self.k,
-            "values (H x W x K)",
-        )?;
-        check_len(
+        check_count(path, "ids", self.ids.len(), &cells, "values (H x W x K)")?;
+        check_count(
             path,
             "weights",
             self.weights.len(),
-            pixels * self.k,
+            &cells,
             "values (H x W x K)",
         )?;
-        check_len(
+        check_count(
             path,
             "transmittance",
             self.transmittance.len(),
-            pixels,
+            &cells[..2],
             "values (H x W)",
         )?;
         check_ids(

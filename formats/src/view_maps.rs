@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::check::{check_finite, check_ids, check_len, meta_err, out_of_range, TensorReader};
+use crate::check::{check_count, check_finite, check_ids, meta_err, out_of_range, TensorReader};
 use crate::container::{Buffer, Container};
 use crate::error::Result;
 use crate::kind::{FileKind, Kind};
@@ -60,7 +60,7 @@ impl FileKind for ViewMaps {
     }
 
     fn validate(&self, path: &str) -> Result<()> {
-        let cells = self.view_names.len() * self.height * self.width;
+        let cells = [self.view_names.len(), self.height, self.width];
         if let Some(i) = self.view_names.iter().position(String::is_empty) {
             return Err(meta_err(
                 path,
@@ -68,7 +68,13 @@ impl FileKind for ViewMaps {
                 &format!("non-empty names (entry {i} is empty)"),
             ));
         }
-        check_len(path, "depth", self.depth.len(), cells, "values (V x H x W)")?;
+        check_count(
+            path,
+            "depth",
+            self.depth.len(),
+            &cells,
+            "values (V x H x W)",
+        )?;
         check_finite(path, "depth", &self.depth)?;
         if let Some(i) = self.depth.iter().position(|d| *d < 0.0) {
             return Err(out_of_range(
@@ -80,7 +86,7 @@ impl FileKind for ViewMaps {
             ));
         }
         if let Some(ids) = &self.object_ids {
-            check_len(path, "object_ids", ids.len(), cells, "values (V x H x W)")?;
+            check_count(path, "object_ids", ids.len(), &cells, "values (V x H x W)")?;
             check_ids(
                 path,
                 "object_ids",
