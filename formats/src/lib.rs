@@ -64,6 +64,7 @@ pub mod label_space;
 mod masks;
 mod matches;
 mod mesh;
+pub mod output;
 mod pq;
 mod prompts;
 mod proposals;
