@@ -309,6 +309,14 @@ impl StagedDir {
         earlier_output: impl FnOnce(&Path) -> bool,
         expected: &'static str,
     ) -> Result<StagedDir, OutputError> {
+        // `.`, `..` or `dir/..` name no entry that could be renamed: use the real path.
+        let resolved;
+        let target = if target.file_name().is_none() {
+            resolved = fs::canonicalize(target).unwrap_or_else(|_| target.to_path_buf());
+            resolved.as_path()
+        } else {
+            target
+        };
         check_output_dir(target)?;
         if target.is_dir() && !is_empty_dir(target) && !earlier_output(target) {
             return Err(OutputError::Foreign {
@@ -543,6 +551,12 @@ mod tests {
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
 
         let staged = StagedDir::new(&target, |_| true, "x").unwrap();
+        std::fs::write(staged.path().join("new.txt"), b"new").unwrap();
+        staged.commit().unwrap();
+        // `out/sub/..` is `out` itself.
+        std::fs::create_dir(target.join("sub")).unwrap();
+        let staged = StagedDir::new(&target.join("sub/.."), |_| true, "x").unwrap();
+        assert_eq!(staged.target(), target.canonicalize().unwrap());
         std::fs::write(staged.path().join("new.txt"), b"new").unwrap();
         staged.commit().unwrap();
         assert!(!target.join("old.txt").exists());
