@@ -71,7 +71,7 @@ pub enum OutputError {
         name: String,
     },
     /// Another process holds the output directory's lock.
-    #[error("{path}: another process is writing this output directory (it holds its lock); wait for it to finish, or ask to wait for the lock")]
+    #[error("{path}: another process is writing this output directory (it holds its lock); wait for it to finish, or let this run wait for the lock (`profuse run --wait`)")]
     Locked {
         /// The directory.
         path: String,
