@@ -12,6 +12,8 @@ mod fuse;
 mod gs_init;
 #[path = "e2e/metrics.rs"]
 mod metrics;
+#[path = "e2e/outputs.rs"]
+mod outputs;
 #[path = "e2e/pipeline.rs"]
 mod pipeline;
 #[path = "e2e/pq.rs"]
@@ -426,4 +428,20 @@ fn splat_raster_orbit_preview_of_guitar_ply() {
     assert_eq!(j["gaussians"], 90854);
     let coverage = j["coverage"].as_f64().unwrap();
     assert!((0.05..0.6).contains(&coverage), "coverage {coverage}");
+}
+
+/// Runs a tool with a file-size limit of `kb` KiB (`ulimit -f`, SIGXFSZ ignored): a write
+/// past it fails with EFBIG like a write on a full disk, whoever runs the test (root
+/// included, unlike a read-only directory).
+fn run_tool_with_file_limit(kb: u64, exe: &str, args: &[&std::ffi::OsStr]) -> Output {
+    Command::new("bash")
+        .arg("-c")
+        .arg("trap '' XFSZ; ulimit -f \"$1\"; shift; exec \"$@\"")
+        .arg("limit")
+        .arg(kb.to_string())
+        .arg(exe)
+        .args(args)
+        .current_dir(root())
+        .output()
+        .unwrap()
 }

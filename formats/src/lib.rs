@@ -20,6 +20,13 @@
 //! enum, [`FormatError`], whose variants name file, tensor and expectation; its
 //! [`FormatError::code`] is shared with the Python reader.
 //!
+//! [`output`] holds the rules every ProFuse output follows (issue 20): only regular files
+//! are replaced, names from data must be plain path components, temporary names are unique
+//! (`.profuse-tmp-*`) and locked while written, leftovers of killed runs are cleaned,
+//! multi-file outputs are built next to their target and swapped in whole
+//! ([`output::StagedDir`]), output directories can be locked ([`output::lock_dir`]), and
+//! report paths serialise lossily ([`output::lossy_path`]).
+//!
 //! Two small modules hold the math every stage shares, so that it exists once: [`camera`]
 //! (SPEC.md §3.3's poses, projection, pixel centres, grid intrinsics and lens model, and
 //! the SH DC colour rule of §4.2) and [`rng`] (the workspace's seeded SplitMix64).
@@ -64,6 +71,7 @@ pub mod label_space;
 mod masks;
 mod matches;
 mod mesh;
+pub mod output;
 mod pq;
 mod prompts;
 mod proposals;

@@ -180,15 +180,29 @@ impl<'a> FileWriter<'a> {
 }
 
 /// Writes any file atomically, the way every ProFuse writer does: `fill` writes into a
-/// temporary file in the target's directory (mode 0666 minus the umask, like
-/// `File::create`), which is flushed to disk and renamed over `path`, so readers never see
-/// a partial file and a failure leaves nothing behind. The error names the step that
-/// failed (`cannot create a temporary file next to it`, `cannot write`, `cannot flush`,
-/// `cannot rename into place`). Crates use it for their PNG and JSON outputs.
+/// temporary file `.profuse-tmp-*` in the target's directory (mode 0666 minus the umask,
+/// like `File::create`; locked while it is written, see [`crate::output`]), which is
+/// flushed to disk and renamed over `path`, so readers never see a partial file and a
+/// failure leaves nothing behind. Only a regular file (or nothing) is replaced: a device,
+/// FIFO, socket or directory at `path` fails before anything is written
+/// ([`crate::output::check_output_file`]). The error names the step that failed (`will not
+/// replace it`, `cannot create a temporary file next to it`, `cannot write`, `cannot
+/// flush`, `cannot rename into place`). Crates use it for their PNG and JSON outputs.
 pub fn write_atomically(
     path: &Path,
     fill: impl FnOnce(&std::fs::File) -> std::io::Result<()>,
 ) -> std::result::Result<(), (&'static str, std::io::Error)> {
+    if let Err(e) = crate::output::check_output_file(path) {
+        let source = match e {
+            crate::output::OutputError::Io { source, .. } => source,
+            crate::output::OutputError::NotAFile { found, .. } => std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("it is a {found}; an output may only replace a regular file"),
+            ),
+            other => std::io::Error::new(std::io::ErrorKind::InvalidInput, other.to_string()),
+        };
+        return Err(("will not replace it", source));
+    }
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
@@ -203,9 +217,58 @@ pub fn write_atomically(
     let tmp = builder
         .tempfile_in(dir)
         .map_err(|e| ("cannot create a temporary file next to it", e))?;
+    crate::output::claim(tmp.as_file());
     fill(tmp.as_file()).map_err(|e| ("cannot write", e))?;
     tmp.as_file().sync_all().map_err(|e| ("cannot flush", e))?;
     tmp.persist(path)
         .map_err(|e| ("cannot rename into place", e.error))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+
+    /// Issue 20 item 5: a FIFO, socket or directory at the output path is refused before
+    /// anything is written, and stays what it was (on the old code the FIFO was replaced
+    /// by a regular file).
+    #[cfg(unix)]
+    #[test]
+    fn non_regular_targets_are_refused_and_left_alone() {
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("fifo");
+        let ok = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "mkfifo failed");
+        let sock = dir.path().join("sock");
+        let _listener = std::os::unix::net::UnixListener::bind(&sock).unwrap();
+        let sub = dir.path().join("sub");
+        std::fs::create_dir(&sub).unwrap();
+        for (path, found) in [(&fifo, "FIFO"), (&sock, "socket"), (&sub, "directory")] {
+            let mut w = FileWriter::new(Kind::Prompts);
+            w.meta("names", "[]");
+            let e = w.commit(path).unwrap_err();
+            let text = e.to_string();
+            assert!(
+                text.contains("will not replace it") && text.contains(found),
+                "{text}"
+            );
+            assert_eq!(e.code(), "io");
+        }
+        assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
+        assert!(std::fs::metadata(&sock).unwrap().file_type().is_socket());
+        assert!(sub.is_dir());
+        // Nothing else was created next to them (no temporary file left behind).
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 3);
+        // A regular file is still replaced.
+        let file = dir.path().join("file");
+        std::fs::write(&file, b"old").unwrap();
+        write_atomically(&file, |mut f| std::io::Write::write_all(&mut f, b"new")).unwrap();
+        assert_eq!(std::fs::read(&file).unwrap(), b"new");
+    }
 }

@@ -412,3 +412,75 @@ fn query_bad_input_exits_1_naming_the_file_and_writes_nothing() {
         "{err}"
     );
 }
+
+/// Issue 20 item 11: a query that fails midway (a full disk; here a file-size limit that
+/// the overlays exceed) leaves the earlier output exactly as it was and no temporary
+/// directory. The old code wrote into `--out` directly and had already replaced the
+/// masks of the new run when the overlay failed.
+#[test]
+fn a_query_failing_midway_leaves_the_earlier_output_whole() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = scene(dir.path(), 2, 192, 3000, false);
+    let out_dir = dir.path().join("out");
+    let first = run(
+        base_args(&root, "--features"),
+        &["--all-classes", "--threshold", "0.6"],
+        &out_dir,
+    );
+    super::assert_succeeded(&first);
+    let before = files(&out_dir);
+    let size = |overlay: bool| {
+        before
+            .iter()
+            .filter(|(p, _)| p.components().any(|c| c.as_os_str() == "overlay") == overlay)
+            .map(|(_, b)| b.len() as u64)
+            .max()
+            .unwrap()
+    };
+    let (small, big) = (size(false), size(true));
+    let limit_kb = small * 2 / 1024 + 1;
+    assert!(limit_kb * 1024 < big, "no gap: {small} vs {big} bytes");
+
+    // Another threshold and γ: selection files (written first; the threshold is in their
+    // metadata) and masks with other bytes; the overlays then fail.
+    let mut args = base_args(&root, "--features");
+    for a in [
+        "--all-classes",
+        "--threshold",
+        "0.55",
+        "--gamma",
+        "0.05",
+        "--quiet",
+        "--out",
+    ] {
+        args.push(a.into());
+    }
+    args.push(out_dir.clone().into());
+    let refs: Vec<&OsStr> = args.iter().map(|s| s.as_os_str()).collect();
+    // Without the limit that run writes other masks (so writing in place would show).
+    let free = dir.path().join("free");
+    let mut free_refs = refs.clone();
+    *free_refs.last_mut().unwrap() = free.as_os_str();
+    super::assert_succeeded(&query(&free_refs));
+    let changed = files(&free);
+    let differs = |p: &Path| changed[p] != before[p];
+    assert!(differs(Path::new("wall/selection.safetensors")));
+    assert!(changed
+        .keys()
+        .any(|p| p.starts_with("wall/masks") && differs(p)));
+    std::fs::remove_dir_all(&free).unwrap();
+    let failed = super::run_tool_with_file_limit(limit_kb, env!("CARGO_BIN_EXE_query"), &refs);
+    assert!(!failed.status.success(), "the limit did not bite");
+    assert!(
+        String::from_utf8_lossy(&failed.stderr).contains("File too large"),
+        "{}",
+        String::from_utf8_lossy(&failed.stderr)
+    );
+    assert!(files(&out_dir) == before, "the earlier output changed");
+    let mut names: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["out", "scene"]);
+}

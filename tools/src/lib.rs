@@ -182,3 +182,20 @@ pub fn write_file(path: &std::path::Path, bytes: &[u8]) -> Result<(), BoxError> 
     profuse_formats::write_atomically(path, |mut f| f.write_all(bytes))
         .map_err(|(action, e)| format!("{}: {action}: {e}", path.display()).into())
 }
+
+/// Checks a command's output files before it does any work (issue 20): each must name a
+/// regular file (which is replaced) or nothing, never a device, FIFO, socket or
+/// directory ([`profuse_formats::output::check_output_file`]); unclaimed temporary files
+/// that killed runs left next to them are removed
+/// ([`profuse_formats::output::clean_leftovers`]).
+pub fn check_outputs<'a>(
+    paths: impl IntoIterator<Item = &'a std::path::Path>,
+) -> Result<(), BoxError> {
+    use profuse_formats::output::{check_output_file, clean_leftovers, LEFTOVER_MIN_AGE};
+    for path in paths {
+        check_output_file(path)?;
+        let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
+        clean_leftovers(dir.unwrap_or(std::path::Path::new(".")), LEFTOVER_MIN_AGE);
+    }
+    Ok(())
+}

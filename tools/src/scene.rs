@@ -80,7 +80,7 @@ pub fn resolve_view(
             cams,
             args.view,
             format!("view_{:03}", args.view),
-            json!({"cameras": path, "index": args.view, "image_name": name}),
+            json!({"cameras": path.to_string_lossy(), "index": args.view, "image_name": name}),
         ))
     } else {
         let angle = args.orbit_angle.ok_or("give --cameras or --orbit-angle")?;

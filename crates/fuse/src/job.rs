@@ -190,11 +190,17 @@ pub struct Report {
     /// `f16` or `f32`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub precision: Option<&'static str>,
-    /// The features file written.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    /// The features file written (non-UTF-8 bytes shown as U+FFFD in JSON).
+    #[serde(
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "profuse_formats::output::lossy_path::option"
+    )]
     pub out: Option<PathBuf>,
     /// The partial-sums file written.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "profuse_formats::output::lossy_path::option"
+    )]
     pub partial_out: Option<PathBuf>,
     /// Reading the inputs.
     pub load_s: f64,

@@ -32,6 +32,10 @@ pub enum PipelineError {
         #[source]
         source: Box<dyn std::error::Error + Send + Sync + 'static>,
     },
+    /// An output rule refused the output directory (another run holds its lock, it is
+    /// not a directory, ...; see `profuse_formats::output`).
+    #[error(transparent)]
+    Output(#[from] profuse_formats::output::OutputError),
     /// A file or directory of the output could not be written.
     #[error("{path}: {action}: {source}")]
     Io {

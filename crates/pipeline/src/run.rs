@@ -12,7 +12,7 @@ use serde_json::{json, Value};
 
 use crate::config::Config;
 use crate::error::{io_err, stage_err, PipelineError, Result};
-use crate::stage::{clear_stamp, needs_run, write_stamp, Stamp};
+use crate::stage::{clear_stamp, fingerprints, needs_run, write_stamp, Stamp, STAMP_VERSION};
 
 /// The class sets of the ScanNet protocol the pipeline labels the mesh for, one
 /// vertex-labels file each (the paper's 19, 15 and 10 NYU40 classes).
@@ -29,6 +29,9 @@ pub struct RunOptions {
     /// of running warp-graph: the `proposals` stage validates it against the masks and
     /// copies it to `out/proposals.safetensors`.
     pub proposals: Option<PathBuf>,
+    /// When another run holds the output directory's lock, wait for it instead of
+    /// failing with [`PipelineError::Output`] (`OutputError::Locked`).
+    pub wait: bool,
 }
 
 /// Progress of a run, for a front end to display.
@@ -159,8 +162,10 @@ pub struct StageLine {
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
     /// The scene directory.
+    #[serde(serialize_with = "profuse_formats::output::lossy_path::one")]
     pub scene: PathBuf,
     /// The output directory.
+    #[serde(serialize_with = "profuse_formats::output::lossy_path::one")]
     pub out: PathBuf,
     /// Each stage in order.
     pub stages: Vec<StageLine>,
@@ -248,14 +253,23 @@ fn stage(
         stage: name,
         reason: &reason,
     });
+    let fingerprint_err = |(path, e): (PathBuf, std::io::Error)| PipelineError::Io {
+        path: path.display().to_string(),
+        action: "cannot read the file's status for the completion record",
+        source: e,
+    };
+    // Inputs as they are before the stage reads them: a change during the run shows as a
+    // difference next time.
+    let inputs = fingerprints(&inputs).map_err(fingerprint_err)?;
     let t0 = Instant::now();
     let report = body()?;
     let seconds = t0.elapsed().as_secs_f64();
     let stamp = Stamp {
+        version: STAMP_VERSION,
         stage: name.into(),
         params,
         inputs,
-        outputs,
+        outputs: fingerprints(&outputs).map_err(fingerprint_err)?,
         seconds,
     };
     write_stamp(out, &stamp).map_err(io_err(out, "cannot write a completion record"))?;
@@ -280,7 +294,10 @@ fn to_json(v: &impl Serialize) -> Value {
 /// Runs the pipeline on a scene directory: gs-init, warp-graph (skipped for the
 /// `fuse.no_proposals` baseline), fuse, pq, query and, when the scene has a labelled mesh,
 /// vertex-transfer. Writes `config.toml` (the effective configuration) into the output
-/// directory first.
+/// directory first. The run holds the output directory's lock
+/// ([`profuse_formats::output::lock_dir`]; a second run on it fails, or waits with
+/// [`RunOptions::wait`]) and first removes what killed runs left there
+/// ([`clean_leftovers`]).
 pub fn run(
     scene: &Path,
     config: &Config,
@@ -298,7 +315,10 @@ pub fn run(
     )?;
     check_input("warp-graph", &p.masks, "masks file")?;
     check_input("query", &p.prompts, "prompts file")?;
+    profuse_formats::output::check_output_dir(&out)?;
     std::fs::create_dir_all(&out).map_err(io_err(&out, "cannot create the output directory"))?;
+    let _lock = profuse_formats::output::lock_dir(&out, opts.wait)?;
+    clean_leftovers(&out);
     write_text(
         &out.join(format!("config{}.toml", p.suffix)),
         &config.to_toml(),
@@ -655,8 +675,9 @@ fn query_prompts(config: &Config, p: &Paths) -> Result<Vec<String>> {
 }
 
 /// The query stage: the LERF layout over the labelled frames when the scene has labels,
-/// else the per-prompt layout over every view; written to a temporary directory renamed
-/// into place at the end, so an interrupted query leaves no partial folder behind.
+/// else the per-prompt layout over every view; written to a uniquely named temporary
+/// directory swapped into place at the end (`Plan::run_replacing`), so an interrupted
+/// query leaves no partial folder behind.
 fn run_query(
     config: &Config,
     p: &Paths,
@@ -694,23 +715,29 @@ fn run_query(
         overlay: q.overlay,
     };
     let plan = inputs.plan(&options).map_err(stage_err("query"))?;
-    let tmp = p.out.join(format!(".query{}.tmp", p.suffix));
-    remove_dir(&tmp)?;
     let report = plan
-        .run(&inputs.gaussians, &tmp, &mut |d, t| progress(d, t))
+        .run_replacing(&inputs.gaussians, &p.query, &mut |d, t| progress(d, t))
         .map_err(stage_err("query"))?;
-    remove_dir(&p.query)?;
-    std::fs::rename(&tmp, &p.query)
-        .map_err(io_err(&p.query, "cannot move the query results into place"))?;
     Ok(to_json(&report))
 }
 
-fn remove_dir(dir: &Path) -> Result<()> {
-    match std::fs::remove_dir_all(dir) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            Err(io_err(dir, "cannot remove an old directory")(e))
+/// Removes what killed runs left in the output directory (the caller holds its lock, so
+/// every unclaimed `.profuse-tmp-*` there is a leftover): temporary files and
+/// directories in `out/` and `out/.stamps/`, and the fixed temporary names of earlier
+/// versions (`.query.tmp`, `.query_baseline.tmp`, `.stamps/.<stage>.tmp`).
+fn clean_leftovers(out: &Path) {
+    use profuse_formats::output::clean_leftovers as clean;
+    let stamps = out.join(".stamps");
+    clean(out, std::time::Duration::ZERO);
+    clean(&stamps, std::time::Duration::ZERO);
+    for legacy in [".query.tmp", ".query_baseline.tmp"] {
+        let _ = std::fs::remove_dir_all(out.join(legacy));
+    }
+    for entry in std::fs::read_dir(&stamps).into_iter().flatten().flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') && name.ends_with(".tmp") {
+            let _ = std::fs::remove_file(entry.path());
         }
-        _ => Ok(()),
     }
 }
 

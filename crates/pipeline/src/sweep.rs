@@ -183,6 +183,7 @@ pub fn run_oracle(scene: &Path, config: &Config) -> Result<BTreeMap<String, Valu
         out: Some(out),
         force: false,
         proposals: Some(given),
+        wait: false,
     };
     let summary = run(scene, config, &opts, &|_| {})?;
     evaluate_run(&Paths::new(scene, &summary.out, false), config, &summary)
@@ -466,7 +467,7 @@ pub fn sweep(opts: &SweepOptions, events: &dyn Fn(SweepEvent<'_>)) -> Result<Swe
         .map_err(io_err(&parent, "cannot create the sweep directory"))?;
     let total = opts.seeds.len() * opts.faults.len();
     let mut rows = Vec::with_capacity(total);
-    let result = (|| {
+    let result: Result<()> = (|| {
         for &faults in &opts.faults {
             for &seed in &opts.seeds {
                 let index = rows.len() + 1;

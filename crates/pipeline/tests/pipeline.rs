@@ -231,6 +231,7 @@ fn given_proposals_replace_warp_graph() {
         out: Some(out.clone()),
         force: false,
         proposals: Some(given.clone()),
+        wait: false,
     };
     let again = run(dir.path(), &tiny_config(), &opts, &|_| {}).unwrap();
     assert_eq!(again.stages[1].stage, "proposals");
@@ -274,4 +275,146 @@ fn given_proposals_replace_warp_graph() {
     .unwrap();
     assert_eq!(back.stages[1].stage, "warp-graph");
     assert!(back.stages[1].ran, "{:?}", ran(&back));
+}
+
+/// Issue 20 item 8: an input replaced by a different file with an *older* modification
+/// time (what `cp -p`, `rsync -t` and `tar x` do) makes the stages that read it stale;
+/// the old mtime-only check called every stage up to date and kept stale outputs.
+#[test]
+fn an_input_replaced_by_an_older_file_makes_its_stages_stale() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let other = tempfile::tempdir().unwrap();
+    synth::generate(&synth::Config::preset(synth::Preset::Tiny, 1), other.path()).unwrap();
+    let (cfg, opts) = (tiny_config(), RunOptions::default());
+    run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+
+    // `cp -p`: another scene's masks, dated a day back.
+    let masks = dir.path().join("masks.safetensors");
+    std::fs::copy(other.path().join("masks.safetensors"), &masks).unwrap();
+    let day_ago = std::time::SystemTime::now() - std::time::Duration::from_secs(86_400);
+    let f = std::fs::File::options().write(true).open(&masks).unwrap();
+    f.set_modified(day_ago).unwrap();
+    drop(f);
+    let s = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    let r = ran(&s);
+    assert_eq!(r[0], ("gs-init", false));
+    assert!(r[1..].iter().all(|(_, ran)| *ran), "{r:?}");
+    assert!(
+        s.stages[1].reason.contains("masks.safetensors changed"),
+        "{}",
+        s.stages[1].reason
+    );
+
+    // The same bytes rewritten in place with the old modification time restored: only
+    // the status-change time tells, and it does.
+    let stamp = std::fs::metadata(&masks).unwrap().modified().unwrap();
+    let bytes = std::fs::read(&masks).unwrap();
+    std::fs::write(&masks, &bytes).unwrap();
+    let f = std::fs::File::options().write(true).open(&masks).unwrap();
+    f.set_modified(stamp).unwrap();
+    drop(f);
+    let s = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    assert_eq!(ran(&s)[1], ("warp-graph", true));
+
+    // Untouched: everything up to date, and the record says what it compares.
+    let s = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    assert!(s.stages.iter().all(|l| !l.ran), "{:?}", ran(&s));
+    let record: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(s.out.join(".stamps/warp-graph.json")).unwrap())
+            .unwrap();
+    assert_eq!(record["version"], 2);
+    let first = &record["inputs"][0];
+    assert_eq!(first["path"], masks.to_string_lossy().as_ref());
+    assert_eq!(first["kind"], "file");
+    assert_eq!(first["size"], bytes.len() as u64);
+    for key in ["inode", "mtime_ns", "ctime_ns"] {
+        assert!(first[key].as_u64().is_some_and(|v| v > 0), "{key}: {first}");
+    }
+}
+
+/// Issue 20 item 7: a run on an output directory that another run holds fails at once
+/// with a typed error naming the directory and writes nothing; with `wait` it waits for
+/// the lock; two concurrent runs on one scene both succeed (the old code had no lock and
+/// a shared fixed temporary directory for the query stage).
+#[test]
+fn runs_on_one_output_directory_are_serialised_by_its_lock() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let cfg = tiny_config();
+    let out = dir.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let held = profuse_formats::output::lock_dir(&out, false).unwrap();
+    let e = run(dir.path(), &cfg, &RunOptions::default(), &|_| {}).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            profuse_pipeline::PipelineError::Output(
+                profuse_formats::output::OutputError::Locked { .. }
+            )
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains(&*out.to_string_lossy()), "{e}");
+    assert_eq!(std::fs::read_dir(&out).unwrap().count(), 0);
+
+    let release = std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        drop(held);
+    });
+    let waiting = RunOptions {
+        wait: true,
+        ..RunOptions::default()
+    };
+    let s = run(dir.path(), &cfg, &waiting, &|_| {}).unwrap();
+    release.join().unwrap();
+    assert!(s.stages.iter().all(|l| l.ran));
+    let reference = std::fs::read(out.join("pq.safetensors")).unwrap();
+
+    let forced = RunOptions {
+        force: true,
+        wait: true,
+        ..RunOptions::default()
+    };
+    let runs: Vec<_> = (0..2)
+        .map(|_| {
+            let (scene, cfg, opts) = (dir.path().to_path_buf(), cfg.clone(), forced.clone());
+            std::thread::spawn(move || run(&scene, &cfg, &opts, &|_| {}).map(|_| ()))
+        })
+        .collect();
+    for r in runs {
+        r.join().unwrap().unwrap();
+    }
+    assert_eq!(
+        std::fs::read(out.join("pq.safetensors")).unwrap(),
+        reference
+    );
+}
+
+/// Issue 20 item 11: what killed runs leave in the output directory (unclaimed
+/// `.profuse-tmp-*` files and directories, the fixed temporary names of earlier
+/// versions) is removed by the next run; the old code left them forever.
+#[test]
+fn leftovers_of_killed_runs_are_removed_by_the_next_run() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let (cfg, opts) = (tiny_config(), RunOptions::default());
+    let first = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    let out = first.out;
+    std::fs::write(out.join(".profuse-tmp-AbC123"), b"half").unwrap();
+    std::fs::create_dir_all(out.join(".profuse-tmp-query-XyZ/wall/masks")).unwrap();
+    std::fs::write(out.join(".profuse-tmp-query-XyZ/wall/masks/a.png"), b"x").unwrap();
+    std::fs::write(out.join(".stamps/.profuse-tmp-q1"), b"{").unwrap();
+    std::fs::create_dir_all(out.join(".query.tmp/x")).unwrap();
+    std::fs::write(out.join(".stamps/.pq.tmp"), b"{").unwrap();
+    let s = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    assert!(s.stages.iter().all(|l| !l.ran), "{:?}", ran(&s));
+    for d in [out.clone(), out.join(".stamps")] {
+        let names: Vec<String> = std::fs::read_dir(&d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with(".profuse-tmp") || n.ends_with(".tmp"))
+            .collect();
+        assert!(names.is_empty(), "{}: {names:?}", d.display());
+    }
 }

@@ -84,7 +84,8 @@ pub struct TrainReport {
     pub seed: u64,
     /// Mean cosine between a valid descriptor and its decode.
     pub reconstruction_cosine_mean: Option<f64>,
-    /// The pq file written.
+    /// The pq file written (non-UTF-8 bytes shown as U+FFFD in JSON).
+    #[serde(serialize_with = "profuse_formats::output::lossy_path::one")]
     pub out: PathBuf,
     /// Training seconds.
     pub train_s: f64,
@@ -105,7 +106,8 @@ pub struct EncodeReport {
     pub m: usize,
     /// Mean cosine between a valid descriptor and its decode.
     pub reconstruction_cosine_mean: Option<f64>,
-    /// The pq file written.
+    /// The pq file written (non-UTF-8 bytes shown as U+FFFD in JSON).
+    #[serde(serialize_with = "profuse_formats::output::lossy_path::one")]
     pub out: PathBuf,
     /// Encoding seconds.
     pub encode_s: f64,

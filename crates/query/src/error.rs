@@ -147,6 +147,10 @@ pub enum QueryError {
         /// The layout.
         layout: &'static str,
     },
+    /// An output rule refused a path (a name from data that is not a plain file name, an
+    /// output directory that is something else; see `profuse_formats::output`).
+    #[error(transparent)]
+    Output(#[from] profuse_formats::output::OutputError),
     /// A file or directory could not be read, created or written.
     #[error("{path}: {action}: {source}")]
     Io {

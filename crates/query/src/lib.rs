@@ -124,9 +124,10 @@ pub use error::{QueryError, Result};
 pub use output::{overlay, OVERLAY_MIX, OVERLAY_TINT};
 pub use params::Params;
 pub use pipeline::{
-    file_name_of, image_stem, rule_text, scale_cameras, DescriptorPath, DescriptorSet, Inputs,
-    Layout, Plan, PlannedPrompt, PlannedView, PromptReport, PromptSelection, QueryOptions, Report,
-    ScoreInputs, ViewSelection, DEFAULT_GAMMA, DEFAULT_RELEVANCY_THRESHOLD, DEFAULT_TOP_K,
+    file_name_of, image_stem, is_query_output, rule_text, scale_cameras, DescriptorPath,
+    DescriptorSet, Inputs, Layout, Plan, PlannedPrompt, PlannedView, PromptReport, PromptSelection,
+    QueryOptions, Report, ScoreInputs, ViewSelection, DEFAULT_GAMMA, DEFAULT_RELEVANCY_THRESHOLD,
+    DEFAULT_TOP_K,
 };
 pub use score::{
     dot, negatives_for, relevancy, score_prompts, unit_vector, Descriptors, ScoreKind,

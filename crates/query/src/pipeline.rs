@@ -438,7 +438,8 @@ pub struct PromptReport {
     /// The effective threshold, widened from f32 by its shortest decimal (0.6, not
     /// 0.6000000238418579); null in JSON when a fraction selected nothing.
     pub threshold: f64,
-    /// The selection file.
+    /// The selection file (non-UTF-8 bytes shown as U+FFFD in JSON).
+    #[serde(serialize_with = "profuse_formats::output::lossy_path::one")]
     pub selection: PathBuf,
     /// Masks written (one per view).
     pub views_written: usize,
@@ -587,6 +588,13 @@ impl Inputs {
         let mut views = Vec::with_capacity(indices.len());
         for v in indices {
             let stem = image_stem(&cams.image_names[v], v);
+            // `...png` has the stem `..`: every output path built from it must stay
+            // inside the output directory.
+            profuse_formats::output::safe_component(
+                &format!("{} `image_names` entry {v}", self.cameras_path),
+                "image stem",
+                &stem,
+            )?;
             if layout.reserved().contains(&stem.as_str()) {
                 return Err(QueryError::ReservedName {
                     what: "image stem",
@@ -793,6 +801,33 @@ impl Plan {
         })
     }
 
+    /// Like [`Plan::run`], but the outputs appear at `out` whole: they are written into a
+    /// temporary directory next to it (`.profuse-tmp-<name>-*`), which then *replaces*
+    /// `out` ([`profuse_formats::output::StagedDir`]): files of an earlier run that this
+    /// run does not write are gone, and a failure (a full disk) leaves `out` as it was and
+    /// no temporary directory. An existing `out` must be empty or an earlier query output
+    /// ([`is_query_output`]). The report names the final paths.
+    pub fn run_replacing(
+        &self,
+        gaussians: &Gaussians,
+        out: &Path,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<Report> {
+        let staged = profuse_formats::output::StagedDir::new(
+            out,
+            is_query_output,
+            "an earlier query output (it has no selection files)",
+        )?;
+        let mut report = self.run(gaussians, staged.path(), progress)?;
+        for p in &mut report.prompts {
+            if let Ok(rel) = p.selection.strip_prefix(staged.path()) {
+                p.selection = out.join(rel);
+            }
+        }
+        staged.commit()?;
+        Ok(report)
+    }
+
     /// The selection file of a planned prompt.
     pub fn selection_file(&self, p: &PlannedPrompt, num_gaussians: usize) -> Selection {
         let mut extra = BTreeMap::new();
@@ -832,6 +867,17 @@ impl Plan {
         }
         dirs.iter().try_for_each(|d| create_dir(d))
     }
+}
+
+/// Whether `dir` holds a query's outputs (which [`Plan::run_replacing`] may replace): a
+/// `selection/` folder (LERF layout) or a `<prompt>/selection.safetensors` (prompt layout).
+pub fn is_query_output(dir: &Path) -> bool {
+    dir.join("selection").is_dir()
+        || std::fs::read_dir(dir).is_ok_and(|entries| {
+            entries
+                .flatten()
+                .any(|e| e.path().join("selection.safetensors").is_file())
+        })
 }
 
 /// `threshold=T` or `top_frac=F`, numbers in their shortest round-trip form.

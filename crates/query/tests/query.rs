@@ -1078,3 +1078,31 @@ fn pq_codes_select_what_exact_descriptors_select_in_the_synthetic_scene() {
     }
     assert!(selected > 3000, "{selected}");
 }
+
+/// Issue 20 item 6: an image named `...png` has the stem `..`; with the LERF layout
+/// (`OUT/<stem>/<prompt>.png`) the old code wrote `OUT/../<prompt>.png`, outside the
+/// output directory. The plan now refuses such a stem, naming the cameras entry, and
+/// nothing is written anywhere.
+#[test]
+fn an_image_stem_that_is_not_a_plain_name_is_refused_before_writing() {
+    let scene = synth_scene(7, 500, None);
+    for bad in ["images/...png", "images/..png"] {
+        let mut inputs = scene.inputs();
+        inputs.cameras.image_names[1] = bad.to_string();
+        let parent = tempfile::tempdir().unwrap();
+        let out = parent.path().join("out");
+        for layout in [Layout::Lerf, Layout::Prompt] {
+            let mut o = options(PromptSelection::Names(vec!["wall".into()]));
+            o.layout = layout;
+            let e = inputs.plan(&o).unwrap_err();
+            assert!(matches!(e, QueryError::Output(_)), "{e}");
+            let text = e.to_string();
+            assert!(
+                text.contains("image stem") && text.contains("image_names` entry 1"),
+                "{text}"
+            );
+        }
+        assert!(!out.exists());
+        assert_eq!(std::fs::read_dir(parent.path()).unwrap().count(), 0);
+    }
+}

@@ -35,6 +35,9 @@ pub enum SynthError {
         #[source]
         source: io::Error,
     },
+    /// An output rule refused the output directory (see `profuse_formats::output`).
+    #[error(transparent)]
+    Output(#[from] profuse_formats::output::OutputError),
     /// A safetensors file of the pipeline could not be written (validation or I/O).
     #[error(transparent)]
     Format(#[from] FormatError),

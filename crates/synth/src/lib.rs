@@ -118,6 +118,7 @@ pub use scene::{Hit, ObjectSpec, Scene, ShapeSpec, Texture, SLAB};
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
     /// The output directory.
+    #[serde(serialize_with = "profuse_formats::output::lossy_path::one")]
     pub out: PathBuf,
     /// The preset name.
     pub preset: String,
@@ -163,15 +164,41 @@ pub fn image_name(v: usize) -> String {
 }
 
 /// Generates a scene into `out`, calling `progress` with a short message at each step.
-/// Files the generator owns are overwritten; outputs of an earlier run that this run
-/// does not produce (images beyond the view count, label frames, disabled files) are
-/// removed so the directory is consistent.
+///
+/// The scene is written into a temporary directory next to `out`
+/// (`.profuse-tmp-<name>-*`) which then *replaces* `out` whole
+/// ([`profuse_formats::output::StagedDir`]): a failure (a full disk, a bad parameter)
+/// leaves `out` as it was and no temporary directory, and a success leaves exactly this
+/// run's files (anything else in an earlier `out`, such as a pipeline's `out/`, is gone).
+/// An existing `out` must be empty or an earlier synth scene ([`is_synth_scene`]).
 pub fn generate_with_progress(
     config: &Config,
     out: &Path,
     progress: &(dyn Fn(&str) + Sync),
 ) -> Result<Summary> {
     config.validate()?;
+    let staged = profuse_formats::output::StagedDir::new(
+        out,
+        is_synth_scene,
+        "a synth scene (it has no gt/scene.json)",
+    )?;
+    let mut summary = write_scene(config, staged.path(), progress)?;
+    staged.commit()?;
+    summary.out = out.to_path_buf();
+    Ok(summary)
+}
+
+/// Whether `dir` is a scene synth wrote (it has `gt/scene.json`), which
+/// [`generate_with_progress`] may replace.
+pub fn is_synth_scene(dir: &Path) -> bool {
+    dir.join("gt").join("scene.json").is_file()
+}
+
+/// Writes a scene into the directory `out` (the staging directory of
+/// [`generate_with_progress`]). Files the generator owns are overwritten; outputs of an
+/// earlier run that this run does not produce (images beyond the view count, label
+/// frames, disabled files) are removed so the directory is consistent.
+fn write_scene(config: &Config, out: &Path, progress: &(dyn Fn(&str) + Sync)) -> Result<Summary> {
     let total = Instant::now();
     let mut seconds = BTreeMap::new();
     let mut clock = Instant::now();

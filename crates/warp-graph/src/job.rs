@@ -113,7 +113,8 @@ pub struct JobReport {
     /// The association's counts.
     #[serde(flatten)]
     pub outcome: Report,
-    /// The proposals file written.
+    /// The proposals file written (non-UTF-8 bytes shown as U+FFFD in JSON).
+    #[serde(serialize_with = "profuse_formats::output::lossy_path::one")]
     pub out: PathBuf,
     /// Seconds, reading and writing included.
     pub seconds: f64,

@@ -14,7 +14,7 @@ use profuse_bench::fuse as bench;
 use profuse_formats::{Cameras, FileKind};
 use profuse_fuse::job::{self, Job, Params, Register};
 use profuse_fuse::{Orphans, Precision, DEFAULT_K};
-use profuse_tools::{chatty, init_threads, progress_bar, run, BoxError};
+use profuse_tools::{chatty, check_outputs, init_threads, progress_bar, run, BoxError};
 use serde_json::{json, Value};
 
 #[derive(Debug, Parser)]
@@ -176,12 +176,16 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             out,
             precision,
         } => {
+            check_outputs([out.as_path()])?;
             let report = job::merge_files(&partials, &out, precision.precision())?;
             if show {
                 eprintln!("merged {} partial files", partials.len());
             }
             let mut value = serde_json::to_value(report)?;
-            value["partials"] = json!(partials);
+            value["partials"] = json!(partials
+                .iter()
+                .map(|p| p.to_string_lossy())
+                .collect::<Vec<_>>());
             Ok(value)
         }
         Command::Bench(args) => bench(args, show),
@@ -192,6 +196,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
 }
 
 fn run_command(a: RunArgs, show: bool) -> Result<Value, BoxError> {
+    check_outputs(a.out.iter().chain(&a.partial_out).map(|p| p.as_path()))?;
     let views = match &a.views {
         Some(v) => v.len(),
         None => Cameras::read(&a.cameras)?.len(),

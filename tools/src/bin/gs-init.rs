@@ -111,6 +111,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
                 matches,
             };
             let params = Params::from(params);
+            profuse_tools::check_outputs([out.as_path()])?;
             let t0 = Instant::now();
             let (gaussians, report) =
                 with_progress(chatty(quiet), |p| initialise_files(&inputs, &params, p))?;
@@ -124,7 +125,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             }
             gaussians.write(&out)?;
             let mut value = report_value(&report)?;
-            value["out"] = json!(out);
+            value["out"] = json!(out.to_string_lossy());
             value["seconds"] = json!(seconds);
             if let Some(path) = report_json {
                 write_json(&path, &value)?;

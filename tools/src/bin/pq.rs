@@ -14,7 +14,7 @@ use clap::{Parser, Subcommand};
 use profuse_bench::pq as bench;
 use profuse_formats::{FileKind, Pq, Prompts};
 use profuse_pq::{job, search, TrainParams, DEFAULT_SHORTLIST};
-use profuse_tools::{chatty, init_threads, run, spinner, Bars, BoxError};
+use profuse_tools::{chatty, check_outputs, init_threads, run, spinner, Bars, BoxError};
 use serde_json::{json, Value};
 
 #[derive(Debug, Parser)]
@@ -140,12 +140,14 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
                 sample,
                 seed,
             };
+            check_outputs([out.as_path()])?;
             let spinner = spinner(show, "training k-means, then encoding");
             let report = job::train_file(&features, &out, &params);
             spinner.finish_and_clear();
             Ok(serde_json::to_value(report?)?)
         }
         Command::Encode { pq, features, out } => {
+            check_outputs([out.as_path()])?;
             let spinner = spinner(show, "encoding");
             let report = job::encode_file(&pq, &features, &out);
             spinner.finish_and_clear();

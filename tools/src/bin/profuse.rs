@@ -158,6 +158,9 @@ struct Common {
     /// Output directory (default: SCENE/out).
     #[arg(long, value_name = "DIR")]
     out_dir: Option<PathBuf>,
+    /// Wait while another run holds the output directory's lock (default: fail at once).
+    #[arg(long)]
+    wait: bool,
     /// No progress bars or tables on stderr.
     #[arg(long)]
     quiet: bool,
@@ -225,6 +228,7 @@ fn run_options(common: &Common, proposals: Option<PathBuf>) -> RunOptions {
         out: common.out_dir.clone(),
         force: common.force,
         proposals,
+        wait: common.wait,
     }
 }
 

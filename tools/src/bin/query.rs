@@ -172,7 +172,8 @@ struct RunArgs {
     /// Do not write overlays (skips the colour render).
     #[arg(long)]
     no_overlay: bool,
-    /// Output directory (created; existing files of the same names are replaced).
+    /// Output directory: built next to it and swapped in whole (an existing one must be
+    /// empty or an earlier query output, and is replaced).
     #[arg(long)]
     out: PathBuf,
 }
@@ -239,13 +240,13 @@ fn run_query(a: RunArgs, quiet: bool) -> Result<Value, BoxError> {
     let plan = inputs.plan(&options)?;
     let bar = progress_bar(chatty(quiet), plan.views.len() as u64, "query", "views");
     bar.set_message(format!("{} prompts", plan.prompts.len()));
-    let report = plan.run(&inputs.gaussians, &a.out, &mut |_, _| bar.inc(1));
+    let report = plan.run_replacing(&inputs.gaussians, &a.out, &mut |_, _| bar.inc(1));
     bar.finish_and_clear();
     let report = report?;
     let mut value = serde_json::to_value(&report)?;
-    value["out"] = json!(a.out);
+    value["out"] = json!(a.out.to_string_lossy());
     value["gaussians"] = json!(inputs.gaussians.len());
-    value["descriptors"] = json!(source.path());
+    value["descriptors"] = json!(source.path().to_string_lossy());
     value["load_s"] = json!(load_s);
     value["total_s"] = json!(t0.elapsed().as_secs_f64());
     Ok(value)
@@ -271,13 +272,13 @@ fn scores(a: ScoresArgs) -> Result<Value, BoxError> {
             let name = profuse_query::file_name_of(&stats.prompt, Layout::Prompt)?;
             let path = dir.join(format!("{name}.safetensors"));
             stats::every_valid_selection(&stats.prompt, kind, s)?.write(&path)?;
-            entry["file"] = json!(path);
+            entry["file"] = json!(path.to_string_lossy());
         }
         prompts.push(entry);
     }
     Ok(json!({
         "score": kind,
-        "descriptors": source.path(),
+        "descriptors": source.path().to_string_lossy(),
         "gaussians": inputs.descriptors().len(),
         "top_method": match (&source, kind) {
             (DescriptorPath::Pq(_), ScoreKind::Cosine) => "adc_shortlist_exact_rerank",

@@ -15,7 +15,7 @@ use profuse_bench::raster as bench;
 use profuse_formats::FileKind;
 use profuse_metrics::photo::{psnr_covered, side_by_side, to_u8};
 use profuse_tools::scene::{load_scene, resolve_view, ViewArgs};
-use profuse_tools::{chatty, init_threads, run, write_png, Bars, BoxError};
+use profuse_tools::{chatty, check_outputs, init_threads, run, write_png, Bars, BoxError};
 use serde_json::{json, Value};
 use splat_raster::{DepthMode, Rasterizer, RenderOptions, ViewRender};
 
@@ -135,7 +135,8 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             view,
             k,
             out,
-        } => topk(&scene, &view, usize::from(k), &out, quiet),
+        } => check_outputs([out.as_path()])
+            .and_then(|()| topk(&scene, &view, usize::from(k), &out, quiet)),
         Command::Bench { params, threads } => {
             init_threads(threads)?;
             let t0 = Instant::now();
@@ -160,11 +161,7 @@ fn render(
     let (cams, v, stem, view_json) = resolve_view(&g, view)?;
     let opts = RenderOptions {
         color: o.color,
-        depth: if o.depth {
-            DepthMode::Normalized
-        } else {
-            DepthMode::None
-        },
+        depth: [DepthMode::None, DepthMode::Normalized][usize::from(o.depth)],
         alpha: true,
         ..RenderOptions::default()
     };
@@ -177,6 +174,7 @@ fn render(
     std::fs::create_dir_all(&o.out_dir)?;
     let (w, h) = (out.width() as u32, out.height() as u32);
     let file = |what: &str| o.out_dir.join(format!("{stem}_{what}.png"));
+    let shown = |what: &str| json!(file(what).to_string_lossy());
     let mut files = serde_json::Map::new();
     let mut report = json!({});
     let rgb: Vec<u8> = out
@@ -187,12 +185,12 @@ fn render(
         .collect();
     if o.color {
         write_png(&file("color"), &rgb, w, h, ExtendedColorType::Rgb8)?;
-        files.insert("color".into(), json!(file("color")));
+        files.insert("color".into(), shown("color"));
     }
     if let Some((depth, scale, max)) = out.depth_u16() {
         let bytes: Vec<u8> = depth.iter().flat_map(|q| q.to_ne_bytes()).collect();
         write_png(&file("depth"), &bytes, w, h, ExtendedColorType::L16)?;
-        files.insert("depth".into(), json!(file("depth")));
+        files.insert("depth".into(), shown("depth"));
         report["depth_scale"] = json!(scale);
         report["depth_max"] = json!(max);
         report["depth_note"] =
@@ -202,7 +200,7 @@ fn render(
     if o.alpha {
         let px: Vec<u8> = a.iter().map(|v| to_u8(*v)).collect();
         write_png(&file("alpha"), &px, w, h, ExtendedColorType::L8)?;
-        files.insert("alpha".into(), json!(file("alpha")));
+        files.insert("alpha".into(), shown("alpha"));
     }
     if let Some(photo) = &o.photo {
         let img = read_photo(photo, w, h)?;
@@ -215,10 +213,10 @@ fn render(
             h,
             ExtendedColorType::Rgb8,
         )?;
-        files.insert("side_by_side".into(), json!(file("side_by_side")));
+        files.insert("side_by_side".into(), shown("side_by_side"));
     }
     let coverage = a.iter().filter(|v| **v > 0.5).count() as f64 / a.len().max(1) as f64;
-    report["scene"] = json!(scene);
+    report["scene"] = json!(scene.to_string_lossy());
     report["gaussians"] = json!(g.len());
     report["view"] = view_json;
     report["width"] = json!(w);
@@ -284,7 +282,7 @@ fn topk(
     file.write(path)?;
     let (filled, full) = out.topk_fill();
     Ok(json!({
-        "scene": scene,
+        "scene": scene.to_string_lossy(),
         "gaussians": g.len(),
         "view": view_json,
         "width": out.width(),
@@ -294,6 +292,6 @@ fn topk(
         "top_k_slots_filled": filled,
         "pixels_with_k_hits": full,
         "render_s": render_s,
-        "out": path,
+        "out": path.to_string_lossy(),
     }))
 }

@@ -49,8 +49,8 @@ struct Cli {
     /// Seed of every random decision.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Output scene directory (created if missing; files the generator owns are
-    /// overwritten).
+    /// Output scene directory: built next to it and swapped in whole (an existing one must
+    /// be empty or an earlier synth scene, and is replaced with everything in it).
     #[arg(long)]
     out: PathBuf,
     /// Do not print progress on stderr.

@@ -144,6 +144,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
                 (None, Some(p)) => DescriptorFile::Pq(p),
                 (None, None) => return Err("one of --features or --pq is required".into()),
             };
+            profuse_tools::check_outputs([out.as_path()])?;
             let job = Job {
                 gaussians,
                 descriptors,

@@ -80,6 +80,7 @@ fn main() -> ExitCode {
             out,
             params,
         } => {
+            profuse_tools::check_outputs([out.as_path()])?;
             let job = Job {
                 masks,
                 matches,
