@@ -49,6 +49,7 @@ import json
 import math
 import os
 import re
+import stat
 import struct
 import sys
 from typing import Any, Callable, ClassVar
@@ -2546,6 +2547,40 @@ def encode_file(kind: str, tensors: dict[str, Any], metadata: dict[str, str]) ->
     return struct.pack("<Q", len(text)) + text + b"".join(chunks)
 
 
+def _file_type_name(mode: int) -> str:
+    for test, name in (
+        (stat.S_ISDIR, "directory"),
+        (stat.S_ISCHR, "character device"),
+        (stat.S_ISBLK, "block device"),
+        (stat.S_ISFIFO, "FIFO"),
+        (stat.S_ISSOCK, "socket"),
+        (stat.S_ISLNK, "symbolic link"),
+    ):
+        if test(mode):
+            return name
+    return "special file"
+
+
+def _check_output_file(label: str, target: str) -> None:
+    """An output may only replace a regular file, or be created (the Rust writers' rule,
+    ``profuse_formats::output::check_output_file``): a device, FIFO, socket or directory
+    at ``target`` is an ``io`` error before anything is written. Symbolic links are
+    followed, as in Rust."""
+    try:
+        mode = os.stat(target).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise _io_error(label, "cannot inspect the output path", e) from None
+    if not stat.S_ISREG(mode):
+        found = _file_type_name(mode)
+        raise FormatError(
+            "io",
+            label,
+            f"{label}: is a {found}; an output may only replace a regular file (or not exist)",
+        )
+
+
 def _write_atomically(path: Any, data: bytes, check: Callable[[str], None]) -> None:
     """Writes ``data`` to a temporary ``.profuse-tmp-*`` file next to ``path``, flushes
     it to disk, runs ``check`` on it, and renames it over ``path``; on any failure the
@@ -2553,6 +2588,7 @@ def _write_atomically(path: Any, data: bytes, check: Callable[[str], None]) -> N
     label = _label(path)
     target = os.fspath(path)
     directory = os.path.dirname(target) or "."
+    _check_output_file(label, target)
     import secrets
 
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -359,6 +360,33 @@ class BadInputTests(TempDir):
         with self.assertRaises(pf.FormatError) as ctx:
             pf.write_prompts(self.dir / "no" / "such.safetensors", **own_samples()["prompts"])
         self.assertEqual(ctx.exception.code, "io")
+
+    def test_only_regular_files_are_replaced(self) -> None:
+        """Issue 20 item 5 for the Python writers: a device, FIFO or directory at the output
+        path is an ``io`` error naming what is there, and is left as it was (the Rust rule)."""
+        # Only special files made here: a regression must not clobber a real device.
+        prompts = own_samples()["prompts"]
+        fifo = self.dir / "fifo"
+        os.mkfifo(fifo)
+        folder = self.dir / "folder"
+        folder.mkdir()
+        sock_path = self.dir / "socket"
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.addCleanup(sock.close)
+        sock.bind(str(sock_path))
+        for target, found in ((fifo, "FIFO"), (folder, "directory"), (sock_path, "socket")):
+            before = os.stat(target)
+            with self.assertRaises(pf.FormatError) as ctx:
+                pf.write_prompts(target, **prompts)
+            self.assertEqual(ctx.exception.code, "io")
+            self.assertIn(f"is a {found}", str(ctx.exception))
+            after = os.stat(target)
+            self.assertEqual((after.st_mode, after.st_ino), (before.st_mode, before.st_ino))
+        self.assertEqual(self.leftovers(), [])
+        regular = self.dir / "regular.safetensors"
+        regular.write_bytes(b"previous")
+        pf.write_prompts(regular, **prompts)
+        self.assertEqual(pf.read_prompts(regular).names, prompts["names"])
 
 
 if __name__ == "__main__":
