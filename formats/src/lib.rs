@@ -72,6 +72,8 @@ mod masks;
 mod matches;
 mod mesh;
 pub mod output;
+#[cfg(feature = "png")]
+pub mod png;
 mod pq;
 mod prompts;
 mod proposals;

@@ -168,10 +168,7 @@ pub fn write_png(
     height: u32,
     color: image::ExtendedColorType,
 ) -> Result<(), BoxError> {
-    use image::ImageEncoder;
-    let mut bytes = Vec::new();
-    image::codecs::png::PngEncoder::new(&mut bytes)
-        .write_image(data, width, height, color)
+    let bytes = profuse_formats::png::encode(data, width, height, color)
         .map_err(|e| format!("cannot encode {}: {e}", path.display()))?;
     write_file(path, &bytes)
 }

@@ -4,8 +4,7 @@
 use std::io::Write;
 use std::path::Path;
 
-use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{ExtendedColorType, ImageEncoder};
+use image::ExtendedColorType;
 
 use crate::error::{io_err, QueryError, Result};
 
@@ -22,13 +21,12 @@ pub(crate) fn write_png(
     data: &[u8],
     color: ExtendedColorType,
 ) -> Result<()> {
-    let mut bytes = Vec::new();
-    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive)
-        .write_image(data, width as u32, height as u32, color)
-        .map_err(|source| QueryError::Image {
+    let bytes = profuse_formats::png::encode(data, width as u32, height as u32, color).map_err(
+        |source| QueryError::Image {
             path: path.display().to_string(),
             source,
-        })?;
+        },
+    )?;
     profuse_formats::write_atomically(path, |mut f| f.write_all(&bytes))
         .map_err(|(action, e)| io_err(path, action)(e))
 }

@@ -22,7 +22,6 @@
 
 use std::path::{Path, PathBuf};
 
-use image::ImageEncoder;
 
 use profuse_formats::camera::pixel_centre;
 pub use profuse_formats::camera::{distort_pixel, undistort_pixel, Lens};
@@ -144,13 +143,12 @@ pub fn undistort_scene(
             .unwrap_or_else(|| format!("view{v:05}"));
         let rel = format!("images/{stem}.png");
         let dst = out_dir.join(&rel);
-        let mut png = Vec::new();
-        image::codecs::png::PngEncoder::new(&mut png)
-            .write_image(&rgb, w as u32, h as u32, image::ExtendedColorType::Rgb8)
-            .map_err(|source| SceneError::Image {
-                path: show(&dst),
-                source,
-            })?;
+        let png =
+            profuse_formats::png::encode(&rgb, w as u32, h as u32, image::ExtendedColorType::Rgb8)
+                .map_err(|source| SceneError::Image {
+                    path: show(&dst),
+                    source,
+                })?;
         write_atomically(&dst, |out| out.write_all(&png))?;
         names.push(rel);
         report.images += 1;

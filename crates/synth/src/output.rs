@@ -4,8 +4,7 @@
 use std::io::Write;
 use std::path::Path;
 
-use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{ExtendedColorType, ImageEncoder};
+use image::ExtendedColorType;
 use serde::Serialize;
 
 use crate::error::{io_err, Result, SynthError};
@@ -20,12 +19,13 @@ fn atomic_write(path: &Path, fill: impl FnOnce(&mut Vec<u8>) -> Result<()>) -> R
 /// Writes an 8-bit RGB PNG.
 pub(crate) fn write_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
     atomic_write(path, |buf| {
-        PngEncoder::new_with_quality(buf, CompressionType::Fast, FilterType::Adaptive)
-            .write_image(rgb, width, height, ExtendedColorType::Rgb8)
-            .map_err(|source| SynthError::Image {
+        *buf = profuse_formats::png::encode(rgb, width, height, ExtendedColorType::Rgb8).map_err(
+            |source| SynthError::Image {
                 path: path.display().to_string(),
                 source,
-            })
+            },
+        )?;
+        Ok(())
     })
 }
 
