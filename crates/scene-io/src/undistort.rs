@@ -22,7 +22,6 @@
 
 use std::path::{Path, PathBuf};
 
-
 use profuse_formats::camera::pixel_centre;
 pub use profuse_formats::camera::{distort_pixel, undistort_pixel, Lens};
 use profuse_formats::Cameras;
