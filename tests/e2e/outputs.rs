@@ -2,13 +2,12 @@
 //! replace only regular files, non-UTF-8 output paths are reported, multi-file outputs
 //! appear whole, leftovers of killed runs are cleaned.
 
-use std::collections::BTreeMap;
 use std::ffi::OsStr;
 use std::os::unix::ffi::OsStrExt;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use super::{assert_succeeded, json, run_tool};
+use super::{assert_succeeded, files, json, run_tool};
 
 fn os(s: &str) -> &OsStr {
     s.as_ref()
@@ -31,24 +30,6 @@ fn synth_args<'a>(out: &'a Path, seed: &'a str, extra: &[&'a str]) -> Vec<&'a Os
     ];
     args.extend(extra.iter().map(|s| os(s)));
     args
-}
-
-/// Every file under `dir` with its bytes.
-fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                let bytes = std::fs::read(&p).unwrap();
-                out.insert(p.strip_prefix(dir).unwrap().to_path_buf(), bytes);
-            }
-        }
-    }
-    out
 }
 
 fn names(dir: &Path) -> Vec<String> {

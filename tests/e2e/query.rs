@@ -6,6 +6,7 @@ use std::ffi::{OsStr, OsString};
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
+use super::files;
 use profuse_formats::{
     Features, FileKind, Floats, Gaussians, Prompts, Selection, ViewMaps, NO_OBJECT,
 };
@@ -127,25 +128,6 @@ fn run(args: Vec<OsString>, extra: &[&str], out: &Path) -> Output {
     all.push("--quiet".into());
     let refs: Vec<&OsStr> = all.iter().map(|s| s.as_os_str()).collect();
     query(&refs)
-}
-
-fn files(root: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    let mut stack = vec![root.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.insert(
-                    p.strip_prefix(root).unwrap().to_path_buf(),
-                    std::fs::read(&p).unwrap(),
-                );
-            }
-        }
-    }
-    out
 }
 
 /// Every class prompt selects exactly its class's Gaussians, and the masks match the

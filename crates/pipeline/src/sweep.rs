@@ -102,9 +102,7 @@ impl SweepRow {
     /// ground truth of each).
     pub fn from_experiment(seed: u64, faults: &str, x: &Experiment) -> Result<SweepRow> {
         let get = |m: &BTreeMap<String, Value>, key: &'static str, variant: &str| {
-            m.get(key)
-                .and_then(Value::as_f64)
-                .ok_or_else(|| missing(&x.scene, variant, key))
+            score(m, key, &x.scene, variant)
         };
         let (s, b) = (&x.scores, &x.baseline_scores);
         let cluster = |key: &'static str| {
@@ -139,12 +137,7 @@ impl SweepRow {
         scene: &Path,
         scores: &BTreeMap<String, Value>,
     ) -> Result<SweepRow> {
-        let get = |key: &'static str| {
-            scores
-                .get(key)
-                .and_then(Value::as_f64)
-                .ok_or_else(|| missing(scene, "ground-truth proposals", key))
-        };
+        let get = |key: &'static str| score(scores, key, scene, "ground-truth proposals");
         self.oracle_lerf_miou = Some(get("lerf_miou")?);
         self.oracle_scannet_miou19 = Some(get("scannet_miou19")?);
         Ok(self)
@@ -187,6 +180,14 @@ pub fn run_oracle(scene: &Path, config: &Config) -> Result<BTreeMap<String, Valu
     };
     let summary = run(scene, config, &opts, &|_| {})?;
     evaluate_run(&Paths::new(scene, &summary.out, false), config, &summary)
+}
+
+/// Score `key` of a variant's scores; its absence is an error naming the scene.
+fn score(scores: &BTreeMap<String, Value>, key: &str, scene: &Path, variant: &str) -> Result<f64> {
+    scores
+        .get(key)
+        .and_then(Value::as_f64)
+        .ok_or_else(|| missing(scene, variant, key))
 }
 
 fn missing(scene: &Path, variant: &str, key: &str) -> PipelineError {
