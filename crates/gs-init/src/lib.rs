@@ -99,6 +99,7 @@ mod flat;
 pub mod geometry;
 mod images;
 mod init;
+pub mod job;
 mod params;
 mod report;
 mod rng;

@@ -382,14 +382,16 @@ fn gs_init_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine
             } else {
                 gs_init::MatchFile::Dense(p.matches.clone())
             };
-            let inputs = gs_init::Inputs {
-                cameras: p.cameras.clone(),
-                images: p.scene.clone(),
-                matches: match_file,
+            let job = gs_init::job::Job {
+                inputs: gs_init::Inputs {
+                    cameras: p.cameras.clone(),
+                    images: p.scene.clone(),
+                    matches: match_file,
+                },
+                out: p.gaussians.clone(),
             };
-            let (g, report) = gs_init::initialise_files(&inputs, &params, &|d, t| r.progress(d, t))
+            let report = gs_init::job::run(&job, &params, &|d, t| r.progress(d, t))
                 .map_err(stage_err("gs-init"))?;
-            g.write(&p.gaussians).map_err(stage_err("gs-init"))?;
             Ok(to_json(&report))
         },
     )

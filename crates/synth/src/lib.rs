@@ -200,30 +200,122 @@ pub fn is_synth_scene(dir: &Path) -> bool {
 /// frames, disabled files) are removed so the directory is consistent.
 fn write_scene(config: &Config, out: &Path, progress: &(dyn Fn(&str) + Sync)) -> Result<Summary> {
     let total = Instant::now();
-    let mut seconds = BTreeMap::new();
-    let mut clock = Instant::now();
-    let mut lap = |name: &str, clock: &mut Instant| {
-        seconds.insert(name.to_string(), clock.elapsed().as_secs_f64());
-        *clock = Instant::now();
-    };
+    let mut laps = Laps::default();
     let gt = out.join("gt");
-    let label_dir = gt.join("label");
-    for d in [out, &out.join("images"), &gt, &label_dir] {
+    for d in [out, &out.join("images"), &gt, &gt.join("label")] {
         output::create_dir(d)?;
     }
     let generator = format!("synth {}", env!("CARGO_PKG_VERSION"));
 
-    // Scene and cameras.
     progress("building the scene");
     let scene = Scene::generate(config)?;
+    laps.lap("scene");
+    let views = render_views(config, &scene, out, &generator, progress)?;
+    laps.lap("render");
+    let semantics = write_masks_and_prompts(config, &scene, &views, out, &generator, progress)?;
+    laps.lap("masks");
+    let num_pairs = write_matches(config, &scene, &views, out, &generator, progress)?;
+    laps.lap("matches");
+    let num_gaussians = write_gt_gaussians(config, &scene, &views, &gt, progress)?;
+    laps.lap("gaussians");
+    progress("tracing label polygons");
+    let eval_frames = write_label_frames(config, &scene, &views, &gt.join("label"))?;
+    laps.lap("labels");
+    progress("triangulating the mesh");
+    let mesh_size = write_mesh(config, &scene, &gt)?;
+    let names = views.names.clone();
+    write_view_maps(views, scene.len(), &gt, &generator)?;
+    laps.lap("mesh");
+
+    let written = Written {
+        image_names: names,
+        eval_frames,
+        masks: semantics.num_masks,
+        pairs: num_pairs,
+        gaussians: num_gaussians,
+        mesh: mesh_size,
+    };
+    write_scene_json(config, &scene, &semantics, &written, &generator, &gt)?;
+    let mut seconds = laps.seconds;
+    seconds.insert("total".to_string(), total.elapsed().as_secs_f64());
+    let (gw, gh) = config.match_grid();
+    Ok(Summary {
+        out: out.to_path_buf(),
+        preset: config.preset.clone(),
+        seed: config.seed,
+        views: config.views,
+        resolution: [config.width, config.height],
+        objects: scene.objects.iter().filter(|o| !o.room).count(),
+        objects_requested: config.objects,
+        scene_objects: scene.len(),
+        masks: written.masks,
+        pairs: written.pairs,
+        match_grid: [gw, gh],
+        prompts: semantics.num_prompts,
+        gaussians: written.gaussians,
+        mesh: written.mesh,
+        eval_frames: written.eval_frames,
+        seconds,
+    })
+}
+
+/// Wall-clock seconds per phase of [`write_scene`].
+struct Laps {
+    seconds: BTreeMap<String, f64>,
+    clock: Instant,
+}
+
+impl Default for Laps {
+    fn default() -> Self {
+        Self {
+            seconds: BTreeMap::new(),
+            clock: Instant::now(),
+        }
+    }
+}
+
+impl Laps {
+    fn lap(&mut self, name: &str) {
+        self.seconds
+            .insert(name.to_string(), self.clock.elapsed().as_secs_f64());
+        self.clock = Instant::now();
+    }
+}
+
+/// What the rendering phase leaves for the later phases: the cameras and, for every
+/// view, the exact depth and object-id maps (views × width × height, row-major).
+struct RenderedViews {
+    cams: Vec<Camera>,
+    names: Vec<String>,
+    width: usize,
+    height: usize,
+    depth: Vec<f32>,
+    ids: Vec<u32>,
+}
+
+impl RenderedViews {
+    fn plane(&self) -> usize {
+        self.width * self.height
+    }
+
+    fn ids_of(&self, v: usize) -> &[u32] {
+        let plane = self.plane();
+        &self.ids[v * plane..(v + 1) * plane]
+    }
+}
+
+/// Renders every view (depth, object ids, colour), writes the RGB images and the
+/// cameras file, and removes images of views an earlier run had beyond this count.
+fn render_views(
+    config: &Config,
+    scene: &Scene,
+    out: &Path,
+    generator: &str,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<RenderedViews> {
     let cams = orbit(config);
     let (w, h) = (config.width as usize, config.height as usize);
     let names: Vec<String> = (0..config.views).map(image_name).collect();
-    let class_of: Vec<u32> = scene.objects.iter().map(|o| o.class_id).collect();
-    let placed = scene.objects.iter().filter(|o| !o.room).count();
-    lap("scene", &mut clock);
-
-    // Render: depth, object ids, colour.
     let plane = w * h;
     let mut depth = vec![0f32; config.views * plane];
     let mut ids = vec![NO_OBJECT; config.views * plane];
@@ -234,7 +326,7 @@ fn write_scene(config: &Config, out: &Path, progress: &(dyn Fn(&str) + Sync)) ->
             &mut depth[v * plane..(v + 1) * plane],
             &mut ids[v * plane..(v + 1) * plane],
         );
-        render(&scene, cam, d, i, &mut rgb);
+        render(scene, cam, d, i, &mut rgb);
         output::write_png(&out.join(&names[v]), config.width, config.height, &rgb)?;
     }
     remove_stale_frames(
@@ -242,63 +334,82 @@ fn write_scene(config: &Config, out: &Path, progress: &(dyn Fn(&str) + Sync)) ->
         "png",
         &(0..config.views).collect::<Vec<_>>(),
     )?;
-    let cameras = Cameras {
-        extra: meta(&generator),
+    Cameras {
+        extra: meta(generator),
         ..cameras_table(&cams, names.clone())
-    };
-    cameras.write(out.join("cameras.safetensors"))?;
-    lap("render", &mut clock);
+    }
+    .write(out.join("cameras.safetensors"))?;
+    Ok(RenderedViews {
+        cams,
+        names,
+        width: w,
+        height: h,
+        depth,
+        ids,
+    })
+}
 
-    // Masks and prompts.
-    let classes_present: Vec<(u32, String)> = {
-        let mut c: Vec<(u32, String)> = scene
-            .objects
-            .iter()
-            .map(|o| (o.class_id, o.class_name.clone()))
-            .collect();
-        c.sort();
-        c.dedup();
-        c
-    };
+/// What the masks phase reports to the scene description.
+struct Semantics {
+    classes_present: Vec<(u32, String)>,
+    num_masks: usize,
+    num_prompts: usize,
+    provenance: Vec<ViewProvenance>,
+}
+
+/// The classes placed in the scene, sorted by id, each once.
+fn classes_present(scene: &Scene) -> Vec<(u32, String)> {
+    let mut c: Vec<(u32, String)> = scene
+        .objects
+        .iter()
+        .map(|o| (o.class_id, o.class_name.clone()))
+        .collect();
+    c.sort();
+    c.dedup();
+    c
+}
+
+/// Derives the faulty "SAM-like" masks with their features (or removes a stale masks
+/// file when masks are off) and writes the prompts file.
+fn write_masks_and_prompts(
+    config: &Config,
+    scene: &Scene,
+    views: &RenderedViews,
+    out: &Path,
+    generator: &str,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<Semantics> {
+    let classes_present = classes_present(scene);
     let protos = Prototypes::new(config.seed, config.feature_dim, &classes_present);
+    let gt = out.join("gt");
     let mut num_masks = 0;
     let mut provenance = Vec::new();
     if config.write_masks {
         progress("deriving masks");
+        let class_of: Vec<u32> = scene.objects.iter().map(|o| o.class_id).collect();
         let per_view: Vec<masks::ViewMasks> = (0..config.views)
             .into_par_iter()
-            .map(|v| {
-                masks::view_masks(
-                    config,
-                    v,
-                    &ids[v * plane..(v + 1) * plane],
-                    w,
-                    &class_of,
-                    &protos,
-                )
-            })
+            .map(|v| masks::view_masks(config, v, views.ids_of(v), views.width, &class_of, &protos))
             .collect();
-        let all = assemble_masks(per_view, &scene, config.views * plane);
-        let (labels, offsets, features, entries) =
-            (all.labels, all.offsets, all.features, all.entries);
+        let all = assemble_masks(per_view, scene, config.views * views.plane());
         provenance = all.provenance;
-        num_masks = entries.len();
+        num_masks = all.entries.len();
         Masks {
-            view_names: names.clone(),
-            width: w,
-            height: h,
-            labels: Labels::U16(labels.into()),
-            mask_offsets: offsets.into(),
-            features: Floats::F16(features.into()),
+            view_names: views.names.clone(),
+            width: views.width,
+            height: views.height,
+            labels: Labels::U16(all.labels.into()),
+            mask_offsets: all.offsets.into(),
+            features: Floats::F16(all.features.into()),
             dim: config.feature_dim,
-            extra: meta(&generator),
+            extra: meta(generator),
         }
         .write(out.join("masks.safetensors"))?;
         output::write_json(
             &gt.join("mask_objects.json"),
             &MaskObjects {
                 num_masks,
-                masks: entries,
+                masks: all.entries,
             },
             false,
         )?;
@@ -316,130 +427,168 @@ fn write_scene(config: &Config, out: &Path, progress: &(dyn Fn(&str) + Sync)) ->
             .collect::<Vec<f32>>()
             .into(),
         class_ids: Some(prompt_rows.iter().map(|p| p.2).collect::<Vec<i32>>().into()),
-        extra: meta(&generator),
+        extra: meta(generator),
     }
     .write(out.join("prompts.safetensors"))?;
-    lap("masks", &mut clock);
+    Ok(Semantics {
+        classes_present,
+        num_masks,
+        num_prompts: prompt_rows.len(),
+        provenance,
+    })
+}
 
-    // Matches.
-    let (gw, gh) = config.match_grid();
-    let mut num_pairs = 0;
-    if config.write_matches {
-        progress("computing warps");
-        let (file, pairs) = matches_file(config, &scene, &cams, &generator);
-        num_pairs = pairs;
-        file.write(out.join("matches.safetensors"))?;
-    } else {
+/// Writes the dense warps between neighbouring views (or removes a stale file);
+/// returns the number of view pairs.
+fn write_matches(
+    config: &Config,
+    scene: &Scene,
+    views: &RenderedViews,
+    out: &Path,
+    generator: &str,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<usize> {
+    if !config.write_matches {
         output::remove_stale(&out.join("matches.safetensors"))?;
+        return Ok(0);
     }
-    lap("matches", &mut clock);
+    progress("computing warps");
+    let (file, pairs) = matches_file(config, scene, &views.cams, generator);
+    file.write(out.join("matches.safetensors"))?;
+    Ok(pairs)
+}
 
-    // Ground-truth Gaussians.
-    let mut num_gaussians = 0;
-    if config.gaussians > 0 {
-        progress("sampling ground-truth Gaussians");
-        let g = gaussians::sample(&scene, &cams, config.seed, config.gaussians);
-        num_gaussians = g.len();
-        g.write(gt.join("gaussians.safetensors"))?;
-    } else {
+/// Samples the ground-truth Gaussians on the visible surfaces (or removes a stale
+/// file when none are asked for); returns their number.
+fn write_gt_gaussians(
+    config: &Config,
+    scene: &Scene,
+    views: &RenderedViews,
+    gt: &Path,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<usize> {
+    if config.gaussians == 0 {
         output::remove_stale(&gt.join("gaussians.safetensors"))?;
+        return Ok(0);
     }
-    lap("gaussians", &mut clock);
+    progress("sampling ground-truth Gaussians");
+    let g = gaussians::sample(scene, &views.cams, config.seed, config.gaussians);
+    g.write(gt.join("gaussians.safetensors"))?;
+    Ok(g.len())
+}
 
-    // LERF-style labels.
-    progress("tracing label polygons");
+/// Writes the LERF-style polygon labels of every evaluation frame and removes those of
+/// frames an earlier run evaluated; returns the evaluation frames.
+fn write_label_frames(
+    config: &Config,
+    scene: &Scene,
+    views: &RenderedViews,
+    label_dir: &Path,
+) -> Result<Vec<usize>> {
     let eval_frames: Vec<usize> = (0..config.views).step_by(config.eval_every).collect();
     for &v in &eval_frames {
         let file_name = format!("frame_{v:05}");
         let lf = labels::frame_labels(
-            &scene,
-            &ids[v * plane..(v + 1) * plane],
-            w,
+            scene,
+            views.ids_of(v),
+            views.width,
             format!("{file_name}.png"),
         );
         output::write_json(&label_dir.join(format!("{file_name}.json")), &lf, false)?;
     }
-    remove_stale_frames(&label_dir, "json", &eval_frames)?;
-    lap("labels", &mut clock);
+    remove_stale_frames(label_dir, "json", &eval_frames)?;
+    Ok(eval_frames)
+}
 
-    // Mesh.
-    progress("triangulating the mesh");
-    let mesh = mesh::build(&scene, config.mesh_spacing);
-    let mesh_size = [
+/// Writes the labelled ground-truth mesh; returns its vertex and face counts.
+fn write_mesh(config: &Config, scene: &Scene, gt: &Path) -> Result<[usize; 2]> {
+    let mesh = mesh::build(scene, config.mesh_spacing);
+    let size = [
         mesh.vertices.len(),
         mesh.faces.as_ref().map_or(0, |f| f.len()),
     ];
     mesh.write(gt.join("mesh.safetensors"))?;
+    Ok(size)
+}
+
+/// Writes the exact per-view depth and object-id maps (consumes them: they are the
+/// largest buffers of a scene).
+fn write_view_maps(
+    views: RenderedViews,
+    num_objects: usize,
+    gt: &Path,
+    generator: &str,
+) -> Result<()> {
     ViewMaps {
-        view_names: names.clone(),
-        num_objects: scene.len(),
-        width: w,
-        height: h,
-        depth: depth.into(),
-        object_ids: Some(ids.into()),
-        extra: meta(&generator),
+        view_names: views.names,
+        num_objects,
+        width: views.width,
+        height: views.height,
+        depth: views.depth.into(),
+        object_ids: Some(views.ids.into()),
+        extra: meta(generator),
     }
     .write(gt.join("views.safetensors"))?;
-    lap("mesh", &mut clock);
+    Ok(())
+}
 
-    // The scene description.
-    let (objects, classes) = scene_tables(&scene, &classes_present);
+/// What [`write_scene`] produced, for the scene description and the summary.
+struct Written {
+    image_names: Vec<String>,
+    eval_frames: Vec<usize>,
+    masks: usize,
+    pairs: usize,
+    gaussians: usize,
+    mesh: [usize; 2],
+}
+
+/// Writes `gt/scene.json`, the scene description (SPEC.md §6.1).
+fn write_scene_json(
+    config: &Config,
+    scene: &Scene,
+    semantics: &Semantics,
+    written: &Written,
+    generator: &str,
+    gt: &Path,
+) -> Result<()> {
+    let (gw, gh) = config.match_grid();
+    let (objects, classes) = scene_tables(scene, &semantics.classes_present);
     let file = SceneFile {
         format: "synth.scene",
         version: 1,
-        generator: generator.clone(),
+        generator: generator.to_string(),
         preset: config.preset.clone(),
         seed: config.seed,
         label_space: "nyu40",
         room: scene.room_json(),
         classes,
         objects_requested: config.objects,
-        objects_placed: placed,
+        objects_placed: scene.objects.iter().filter(|o| !o.room).count(),
         objects,
         cameras: CamerasJson {
             views: config.views,
             width: config.width,
             height: config.height,
             hfov_deg: config.hfov_deg,
-            image_names: names,
+            image_names: written.image_names.clone(),
         },
-        eval_frames: eval_frames.clone(),
+        eval_frames: written.eval_frames.clone(),
         fault_model: &config.faults,
         masks: config.write_masks.then_some(MasksJson {
-            total: num_masks,
-            per_view: provenance,
+            total: written.masks,
+            per_view: semantics.provenance.clone(),
         }),
         matches: config.write_matches.then_some(MatchesJson {
-            pairs: num_pairs,
+            pairs: written.pairs,
             grid: [gw, gh],
             coords: "normalized",
             precision: config.match_precision,
         }),
-        gaussians: num_gaussians,
-        mesh: mesh_size,
+        gaussians: written.gaussians,
+        mesh: written.mesh,
         parameters: config,
     };
-    output::write_json(&gt.join("scene.json"), &file, true)?;
-    seconds.insert("total".to_string(), total.elapsed().as_secs_f64());
-
-    Ok(Summary {
-        out: out.to_path_buf(),
-        preset: config.preset.clone(),
-        seed: config.seed,
-        views: config.views,
-        resolution: [config.width, config.height],
-        objects: placed,
-        objects_requested: config.objects,
-        scene_objects: scene.len(),
-        masks: num_masks,
-        pairs: num_pairs,
-        match_grid: [gw, gh],
-        prompts: prompt_rows.len(),
-        gaussians: num_gaussians,
-        mesh: mesh_size,
-        eval_frames,
-        seconds,
-    })
+    output::write_json(&gt.join("scene.json"), &file, true)
 }
 
 /// The scene description's object and class tables.

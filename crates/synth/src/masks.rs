@@ -156,6 +156,58 @@ impl UnionFind {
     }
 }
 
+/// One view's object-id map and the fault model, shared by the steps of [`view_masks`].
+struct ViewInput<'a> {
+    config: &'a Config,
+    /// (seed, view) for the keyed random decisions.
+    seed: u64,
+    v: u64,
+    ids: &'a [u32],
+    width: usize,
+    height: usize,
+    class_of: &'a [u32],
+}
+
+impl ViewInput<'_> {
+    fn faults(&self) -> &FaultModel {
+        &self.config.faults
+    }
+
+    fn num_objects(&self) -> usize {
+        self.class_of.len()
+    }
+
+    fn valid(&self, o: u32) -> bool {
+        o != NO_OBJECT && (o as usize) < self.num_objects()
+    }
+}
+
+/// The regions that survive step 2, grouped by under-segmentation (step 4).
+struct Groups {
+    /// Objects that were "missed" (dropped small regions).
+    dropped: Vec<bool>,
+    /// Members of each group, ordered by their smallest object id.
+    list: Vec<Vec<u32>>,
+    /// Group of each object (`usize::MAX` for none).
+    of: Vec<usize>,
+}
+
+impl Groups {
+    fn kept(&self, input: &ViewInput<'_>, o: u32) -> bool {
+        input.valid(o) && !self.dropped[o as usize]
+    }
+}
+
+/// The provisional (pre-jitter) masks of step 5.
+struct Provisional {
+    /// (centroid, normal) of the splitting line per group, or None.
+    lines: Vec<Option<([f64; 2], [f64; 2])>>,
+    /// (group, half) of each provisional mask.
+    masks: Vec<(usize, Option<u8>)>,
+    /// Provisional mask per pixel, `NONE` = none.
+    labels: Vec<u32>,
+}
+
 /// Derives the masks of view `view` from its object-id map (`ids`, row-major W×H).
 /// `class_of[o]` is the class id of object o. Deterministic: every random decision is
 /// keyed by (seed, view, object) or (seed, view, pixel).
@@ -167,27 +219,46 @@ pub(crate) fn view_masks(
     class_of: &[u32],
     protos: &Prototypes,
 ) -> ViewMasks {
-    let fm: &FaultModel = &config.faults;
-    let (seed, v) = (config.seed, view as u64);
-    let height = ids.len() / width.max(1);
-    let n_obj = class_of.len();
-    let valid = |o: u32| o != NO_OBJECT && (o as usize) < n_obj;
+    let input = ViewInput {
+        config,
+        seed: config.seed,
+        v: view as u64,
+        ids,
+        width,
+        height: ids.len() / width.max(1),
+        class_of,
+    };
+    let mut prov = ViewProvenance {
+        view,
+        ..Default::default()
+    };
+    let groups = group_regions(&input, &mut prov);
+    let provisional = split_groups(&input, &groups);
+    let l1 = jitter_boundaries(&input, &provisional.labels, &mut prov);
+    let (labels, masks) = final_masks(&input, &groups, &provisional, &l1, protos, &mut prov);
+    prov.split = provisional.lines.iter().filter(|l| l.is_some()).count();
+    prov.masks = masks.len();
+    ViewMasks {
+        labels,
+        masks,
+        provenance: prov,
+    }
+}
 
-    // 1. Object regions and their areas.
+/// Steps 1-4: object regions, missed small objects, and under-segmentation (a region
+/// merged with a neighbour sharing a boundary, 4-adjacency).
+fn group_regions(input: &ViewInput<'_>, prov: &mut ViewProvenance) -> Groups {
+    let (fm, seed, v) = (input.faults(), input.seed, input.v);
+    let (ids, width, height, n_obj) = (input.ids, input.width, input.height, input.num_objects());
     let mut area = vec![0u64; n_obj];
     for &o in ids {
-        if valid(o) {
+        if input.valid(o) {
             area[o as usize] += 1;
         }
     }
     let regions: Vec<usize> = (0..n_obj).filter(|&o| area[o] > 0).collect();
-    let mut prov = ViewProvenance {
-        view,
-        visible_objects: regions.len(),
-        ..Default::default()
-    };
+    prov.visible_objects = regions.len();
 
-    // 2. Missed small objects.
     let mut dropped = vec![false; n_obj];
     for &o in &regions {
         if area[o] < u64::from(fm.min_area_px)
@@ -197,9 +268,8 @@ pub(crate) fn view_masks(
             prov.dropped_small += 1;
         }
     }
-    let kept = |o: u32| valid(o) && !dropped[o as usize];
+    let kept = |o: u32| input.valid(o) && !dropped[o as usize];
 
-    // 3. Under-segmentation: merge with a neighbour sharing a boundary (4-adjacency).
     let mut adjacent = BTreeSet::new();
     if fm.p_merge > 0.0 {
         for y in 0..height {
@@ -235,38 +305,43 @@ pub(crate) fn view_masks(
         }
     }
 
-    // 4. Groups (merged regions), keyed by their smallest object id.
+    // Groups keyed by their smallest object id: roots are the smallest member (union
+    // keeps the smaller root), so the BTreeMap is ordered by key object.
     let mut groups: BTreeMap<usize, Vec<u32>> = BTreeMap::new();
     for &o in &regions {
         if !dropped[o] {
             groups.entry(uf.find(o)).or_default().push(o as u32);
         }
     }
-    // Roots are the smallest member (union keeps the smaller root), so the BTreeMap is
-    // ordered by key object.
-    let group_list: Vec<Vec<u32>> = groups.into_values().collect();
-    let mut group_of = vec![usize::MAX; n_obj];
-    for (g, members) in group_list.iter().enumerate() {
+    let list: Vec<Vec<u32>> = groups.into_values().collect();
+    let mut of = vec![usize::MAX; n_obj];
+    for (g, members) in list.iter().enumerate() {
         for &o in members {
-            group_of[o as usize] = g;
+            of[o as usize] = g;
         }
     }
+    Groups { dropped, list, of }
+}
 
-    // 5. Over-segmentation: split by a random line through the centroid.
-    let mut sums = vec![[0.0f64; 3]; group_list.len()];
+/// Step 5, over-segmentation: a group is split in two by a random line through its
+/// centroid.
+fn split_groups(input: &ViewInput<'_>, groups: &Groups) -> Provisional {
+    let (fm, seed, v) = (input.faults(), input.seed, input.v);
+    let (ids, width, height) = (input.ids, input.width, input.height);
+    let mut sums = vec![[0.0f64; 3]; groups.list.len()];
     for y in 0..height {
         for x in 0..width {
             let o = ids[y * width + x];
-            if kept(o) {
-                let s = &mut sums[group_of[o as usize]];
+            if groups.kept(input, o) {
+                let s = &mut sums[groups.of[o as usize]];
                 s[0] += x as f64 + 0.5;
                 s[1] += y as f64 + 0.5;
                 s[2] += 1.0;
             }
         }
     }
-    // (centroid, normal) of the splitting line per group, or None.
-    let lines: Vec<Option<([f64; 2], [f64; 2])>> = group_list
+    let lines: Vec<Option<([f64; 2], [f64; 2])>> = groups
+        .list
         .iter()
         .enumerate()
         .map(|(g, members)| {
@@ -284,88 +359,108 @@ pub(crate) fn view_masks(
             ))
         })
         .collect();
-    // Provisional masks: (group, half).
-    let mut first_mask = Vec::with_capacity(group_list.len());
-    let mut provisional: Vec<(usize, Option<u8>)> = Vec::new();
+    let mut first_mask = Vec::with_capacity(groups.list.len());
+    let mut masks: Vec<(usize, Option<u8>)> = Vec::new();
     for (g, line) in lines.iter().enumerate() {
-        first_mask.push(provisional.len() as u32);
+        first_mask.push(masks.len() as u32);
         if line.is_some() {
-            provisional.push((g, Some(0)));
-            provisional.push((g, Some(1)));
+            masks.push((g, Some(0)));
+            masks.push((g, Some(1)));
         } else {
-            provisional.push((g, None));
+            masks.push((g, None));
         }
     }
-    let mut l0 = vec![NONE; ids.len()];
+    let mut labels = vec![NONE; ids.len()];
     for y in 0..height {
         for x in 0..width {
             let o = ids[y * width + x];
-            if !kept(o) {
+            if !groups.kept(input, o) {
                 continue;
             }
-            let g = group_of[o as usize];
+            let g = groups.of[o as usize];
             let side = match &lines[g] {
                 Some((c, n)) => {
                     u32::from((x as f64 + 0.5 - c[0]) * n[0] + (y as f64 + 0.5 - c[1]) * n[1] > 0.0)
                 }
                 None => 0,
             };
-            l0[y * width + x] = first_mask[g] + side;
+            labels[y * width + x] = first_mask[g] + side;
         }
     }
+    Provisional {
+        lines,
+        masks,
+        labels,
+    }
+}
 
-    // 6. Boundary jitter and unassigned boundary pixels (decided on the pre-jitter map).
-    let mut l1 = l0.clone();
-    if fm.p_jitter > 0.0 || fm.p_unassigned > 0.0 {
-        let r = fm.jitter_px as i64;
-        let mut others: Vec<u32> = Vec::new();
-        for y in 0..height {
-            for x in 0..width {
-                let i = y * width + x;
-                let here = l0[i];
-                let p = i as u64;
-                if fm.p_jitter > 0.0 && r > 0 {
-                    others.clear();
-                    for dy in -r..=r {
-                        for dx in -r..=r {
-                            let (xx, yy) = (x as i64 + dx, y as i64 + dy);
-                            if xx < 0 || yy < 0 || xx >= width as i64 || yy >= height as i64 {
-                                continue;
-                            }
-                            let l = l0[yy as usize * width + xx as usize];
-                            if l != here && !others.contains(&l) {
-                                others.push(l);
-                            }
+/// Step 6: boundary jitter and unassigned boundary pixels, both decided on the
+/// pre-jitter map `l0`.
+fn jitter_boundaries(input: &ViewInput<'_>, l0: &[u32], prov: &mut ViewProvenance) -> Vec<u32> {
+    let (fm, seed, v) = (input.faults(), input.seed, input.v);
+    let (width, height) = (input.width, input.height);
+    let mut l1 = l0.to_vec();
+    if fm.p_jitter <= 0.0 && fm.p_unassigned <= 0.0 {
+        return l1;
+    }
+    let r = fm.jitter_px as i64;
+    let mut others: Vec<u32> = Vec::new();
+    for y in 0..height {
+        for x in 0..width {
+            let i = y * width + x;
+            let here = l0[i];
+            let p = i as u64;
+            if fm.p_jitter > 0.0 && r > 0 {
+                others.clear();
+                for dy in -r..=r {
+                    for dx in -r..=r {
+                        let (xx, yy) = (x as i64 + dx, y as i64 + dy);
+                        if xx < 0 || yy < 0 || xx >= width as i64 || yy >= height as i64 {
+                            continue;
+                        }
+                        let l = l0[yy as usize * width + xx as usize];
+                        if l != here && !others.contains(&l) {
+                            others.push(l);
                         }
                     }
-                    if !others.is_empty() && unit(&[seed, tag::JITTER, v, p]) < fm.p_jitter {
-                        let k =
-                            (unit(&[seed, tag::JITTER, v, p, 1]) * others.len() as f64) as usize;
-                        l1[i] = others[k.min(others.len() - 1)];
-                        prov.jittered_px += 1;
-                    }
                 }
-                if fm.p_unassigned > 0.0 {
-                    let boundary = (x > 0 && l0[i - 1] != here)
-                        || (x + 1 < width && l0[i + 1] != here)
-                        || (y > 0 && l0[i - width] != here)
-                        || (y + 1 < height && l0[i + width] != here);
-                    if boundary
-                        && l1[i] != NONE
-                        && unit(&[seed, tag::UNASSIGNED, v, p]) < fm.p_unassigned
-                    {
-                        l1[i] = NONE;
-                        prov.unassigned_px += 1;
-                    }
+                if !others.is_empty() && unit(&[seed, tag::JITTER, v, p]) < fm.p_jitter {
+                    let k = (unit(&[seed, tag::JITTER, v, p, 1]) * others.len() as f64) as usize;
+                    l1[i] = others[k.min(others.len() - 1)];
+                    prov.jittered_px += 1;
+                }
+            }
+            if fm.p_unassigned > 0.0 {
+                let boundary = (x > 0 && l0[i - 1] != here)
+                    || (x + 1 < width && l0[i + 1] != here)
+                    || (y > 0 && l0[i - width] != here)
+                    || (y + 1 < height && l0[i + width] != here);
+                if boundary
+                    && l1[i] != NONE
+                    && unit(&[seed, tag::UNASSIGNED, v, p]) < fm.p_unassigned
+                {
+                    l1[i] = NONE;
+                    prov.unassigned_px += 1;
                 }
             }
         }
     }
+    l1
+}
 
-    // 7. Final masks: drop empty ones, renumber in provisional order.
-    let np = provisional.len();
+/// Step 7: the final masks (empty ones dropped, renumbered in provisional order), their
+/// view-local label map (`u16::MAX` = none) and each mask's composition and feature.
+fn final_masks(
+    input: &ViewInput<'_>,
+    groups: &Groups,
+    provisional: &Provisional,
+    l1: &[u32],
+    protos: &Prototypes,
+    prov: &mut ViewProvenance,
+) -> (Vec<u16>, Vec<MaskInfo>) {
+    let np = provisional.masks.len();
     let mut final_count = vec![0u64; np];
-    for &l in &l1 {
+    for &l in l1 {
         if l != NONE {
             final_count[l as usize] += 1;
         }
@@ -394,11 +489,11 @@ pub(crate) fn view_masks(
     // for purity.
     let mut intended: Vec<BTreeMap<u32, u64>> = vec![BTreeMap::new(); np];
     let mut actual: Vec<BTreeMap<u32, u64>> = vec![BTreeMap::new(); np];
-    for (i, (&a, &b)) in l0.iter().zip(&l1).enumerate() {
-        let o = ids[i];
-        if a != NONE && valid(o) {
+    for (i, (&a, &b)) in provisional.labels.iter().zip(l1).enumerate() {
+        let o = input.ids[i];
+        if a != NONE && input.valid(o) {
             *intended[a as usize]
-                .entry(class_of[o as usize])
+                .entry(input.class_of[o as usize])
                 .or_default() += 1;
         }
         if b != NONE {
@@ -411,8 +506,8 @@ pub(crate) fn view_masks(
         if new_index[m] == u16::MAX {
             continue;
         }
-        let (g, half) = provisional[m];
-        let members = group_list[g].clone();
+        let (g, half) = provisional.masks[m];
+        let members = groups.list[g].clone();
         let key = [u64::from(members[0]), half.map_or(2, u64::from)];
         let pixels = final_count[m];
         let (object, count) =
@@ -421,7 +516,8 @@ pub(crate) fn view_masks(
                 |best, (o, c)| if *c > best.1 { (*o, *c) } else { best },
             );
         let purity = count as f64 / pixels.max(1) as f64;
-        let (feature, class_id, wrong_class) = mask_feature(config, v, key, &intended[m], protos);
+        let (feature, class_id, wrong_class) =
+            mask_feature(input.config, input.v, key, &intended[m], protos);
         if wrong_class.is_some() {
             prov.wrong_class += 1;
         }
@@ -436,13 +532,7 @@ pub(crate) fn view_masks(
             feature,
         });
     }
-    prov.split = lines.iter().filter(|l| l.is_some()).count();
-    prov.masks = masks.len();
-    ViewMasks {
-        labels,
-        masks,
-        provenance: prov,
-    }
+    (labels, masks)
 }
 
 /// The feature of one mask: normalize(mix + noise), mix = area-weighted mean of the

@@ -8,14 +8,13 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
 
 use clap::{Parser, Subcommand};
-use gs_init::{initialise_files, FlatParams, Inputs, MatchFile, Params, Report};
+use gs_init::job::{self, Job};
+use gs_init::{FlatParams, Inputs, MatchFile, Params};
 use profuse_bench::gs_init as bench;
-use profuse_formats::FileKind;
 use profuse_tools::{chatty, init_threads, progress_bar, run, warn, BoxError};
-use serde_json::{json, Value};
+use serde_json::Value;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -112,21 +111,16 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             };
             let params = Params::from(params);
             profuse_tools::check_outputs([out.as_path()])?;
-            let t0 = Instant::now();
-            let (gaussians, report) =
-                with_progress(chatty(quiet), |p| initialise_files(&inputs, &params, p))?;
-            let seconds = t0.elapsed().as_secs_f64();
-            if report.kept == 0 {
-                warn(quiet, "no point survived: the gaussians file is empty");
-            }
             if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
                 std::fs::create_dir_all(parent)
                     .map_err(|e| format!("cannot create {}: {e}", parent.display()))?;
             }
-            gaussians.write(&out)?;
-            let mut value = report_value(&report)?;
-            value["out"] = json!(out.to_string_lossy());
-            value["seconds"] = json!(seconds);
+            let job = Job { inputs, out };
+            let report = with_progress(chatty(quiet), |p| job::run(&job, &params, p))?;
+            if report.report.kept == 0 {
+                warn(quiet, "no point survived: the gaussians file is empty");
+            }
+            let value = serde_json::to_value(&report)?;
             if let Some(path) = report_json {
                 write_json(&path, &value)?;
             }
@@ -151,10 +145,6 @@ fn with_progress<T>(show: bool, f: impl FnOnce(&(dyn Fn(usize, usize) + Sync)) -
     });
     bar.finish_and_clear();
     result
-}
-
-fn report_value(report: &Report) -> Result<Value, BoxError> {
-    Ok(serde_json::to_value(report)?)
 }
 
 /// Writes pretty JSON atomically.
