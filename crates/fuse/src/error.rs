@@ -78,6 +78,19 @@ pub enum FuseError {
         /// This file's value.
         found: String,
     },
+    /// Partial sums given to finish a job were computed for other inputs or parameters
+    /// than the job's own (e.g. a shard left over from before the proposals changed).
+    #[error("partial sums {shards}: `{field}` is {found}, but this job's inputs and parameters give {expected}")]
+    ShardOfOtherInputs {
+        /// The partial files.
+        shards: String,
+        /// The metadata key or tensor that differs.
+        field: &'static str,
+        /// The job's value.
+        expected: String,
+        /// The shards' value.
+        found: String,
+    },
     /// Two partial files both contain a view, so merging them would count it twice.
     #[error("view {view} is in both {first} and {second}")]
     ViewOverlap {

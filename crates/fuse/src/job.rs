@@ -265,6 +265,66 @@ pub fn run(job: &Job, params: &Params, on_view: &mut dyn FnMut(&ViewReport)) -> 
     Ok(Run { report, partial })
 }
 
+/// The finishing step of a sharded run: adds up the partial sums that runs of this same
+/// job over disjoint view shards wrote (`views` + `partial_out`), and writes `job.out`,
+/// byte-identical to an unsharded [`run`]. Unlike [`merge_files`], every shard is checked
+/// against the job's own inputs and parameters (Gaussian and view counts, K, the grouping
+/// of the masks, the mask features), so a shard left over from other inputs is refused
+/// ([`crate::FuseError::ShardOfOtherInputs`]) instead of being summed.
+pub fn run_merged(job: &Job, params: &Params, partials: &[PathBuf]) -> Result<Run> {
+    let t0 = Instant::now();
+    let gaussians = Gaussians::read(&job.gaussians)?;
+    let cameras = Cameras::read(&job.cameras)?;
+    let masks = Masks::read(&job.masks)?;
+    let groups = job_groups(job, params, &masks)?;
+    let parts = partials
+        .iter()
+        .map(PartialSums::read)
+        .collect::<Result<Vec<_>>>()?;
+    let names: Vec<String> = partials.iter().map(|p| name(p)).collect();
+    let merged = crate::merge(&parts, &names)?;
+    drop(parts);
+    let expected = crate::partial::JobFacts {
+        num_gaussians: gaussians.len(),
+        num_views: cameras.len(),
+        k: params.k,
+        groups: &groups,
+        mask_features: &masks.features,
+        num_masks: masks.num_masks(),
+        dim: masks.dim,
+    };
+    crate::partial::compare_facts(&expected, &merged.facts()).map_err(
+        |(field, expected, found)| crate::FuseError::ShardOfOtherInputs {
+            shards: names.join(", "),
+            field,
+            expected,
+            found,
+        },
+    )?;
+    if !merged.is_complete() {
+        return Err(crate::FuseError::MissingViews {
+            missing: merged.missing_views(),
+            views: merged.num_views(),
+        });
+    }
+    let load_s = t0.elapsed().as_secs_f64();
+    let mut report = base_report(&merged, [0, merged.num_views()], load_s);
+    if let Some(out) = &job.out {
+        let precision = job
+            .precision
+            .unwrap_or_else(|| Precision::of(&masks.features));
+        let reg = finish(&merged, precision);
+        reg.features.write(out)?;
+        add_registration(&mut report, &reg, &merged, precision);
+        report.out = Some(out.clone());
+    }
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok(Run {
+        report,
+        partial: merged,
+    })
+}
+
 /// Adds up partial-sums files of disjoint shards that cover every view and writes the
 /// features: byte-identical to an unsharded [`run`].
 pub fn merge_files(

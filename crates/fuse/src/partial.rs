@@ -323,17 +323,50 @@ pub fn merge(parts: &[PartialSums], names: &[String]) -> Result<PartialSums> {
     })
 }
 
+/// What every partial sum of one job shares: its inputs' sizes, K, the grouping of the
+/// masks and the mask features.
+pub(crate) struct JobFacts<'a> {
+    pub num_gaussians: usize,
+    pub num_views: usize,
+    pub k: usize,
+    pub groups: &'a Groups,
+    pub mask_features: &'a Floats,
+    pub num_masks: usize,
+    pub dim: usize,
+}
+
+impl PartialSums {
+    pub(crate) fn facts(&self) -> JobFacts<'_> {
+        JobFacts {
+            num_gaussians: self.num_gaussians,
+            num_views: self.num_views,
+            k: self.k,
+            groups: &self.groups,
+            mask_features: &self.mask_features,
+            num_masks: self.num_masks(),
+            dim: self.dim,
+        }
+    }
+}
+
 /// `p` was computed for the same inputs and parameters as `first`.
-fn check_same(first: &PartialSums, p: &PartialSums, name: &str) -> Result<()> {
-    let differ = |field: &'static str, expected: String, found: String| {
-        Err(FuseError::PartialMismatch {
+pub(crate) fn check_same(first: &PartialSums, p: &PartialSums, name: &str) -> Result<()> {
+    compare_facts(&first.facts(), &p.facts()).map_err(|(field, expected, found)| {
+        FuseError::PartialMismatch {
             path: name.to_string(),
             field,
             expected,
             found,
-        })
-    };
-    let facts = |p: &PartialSums| {
+        }
+    })
+}
+
+/// The first field in which `b` differs from `a`: (field, a's value, b's value).
+pub(crate) fn compare_facts(
+    a: &JobFacts<'_>,
+    b: &JobFacts<'_>,
+) -> std::result::Result<(), (&'static str, String, String)> {
+    let facts = |p: &JobFacts<'_>| {
         [
             ("num_gaussians", p.num_gaussians.to_string()),
             ("num_views", p.num_views.to_string()),
@@ -341,34 +374,34 @@ fn check_same(first: &PartialSums, p: &PartialSums, name: &str) -> Result<()> {
             ("grouping", p.groups.grouping.name().to_string()),
             ("orphans", p.groups.grouping.orphans_name().to_string()),
             ("num_groups", p.groups.num_groups.to_string()),
-            ("mask_features", format!("[{}, {}]", p.num_masks(), p.dim)),
+            ("mask_features", format!("[{}, {}]", p.num_masks, p.dim)),
         ]
     };
-    for ((field, a), (_, b)) in facts(first).into_iter().zip(facts(p)) {
-        if a != b {
-            return differ(field, a, b);
+    for ((field, x), (_, y)) in facts(a).into_iter().zip(facts(b)) {
+        if x != y {
+            return Err((field, x, y));
         }
     }
-    if first.groups.mask_group != p.groups.mask_group {
-        return differ(
+    if a.groups.mask_group != b.groups.mask_group {
+        return Err((
             "mask_group",
             "one grouping".into(),
             "a different one".into(),
-        );
+        ));
     }
-    if first.groups.mask_proposal != p.groups.mask_proposal {
-        return differ(
+    if a.groups.mask_proposal != b.groups.mask_proposal {
+        return Err((
             "mask_proposal",
             "one set of proposals".into(),
             "a different one".into(),
-        );
+        ));
     }
-    if first.mask_features != p.mask_features {
-        return differ(
+    if a.mask_features != b.mask_features {
+        return Err((
             "mask_features",
             "one feature table".into(),
             "different features".into(),
-        );
+        ));
     }
     Ok(())
 }

@@ -953,6 +953,107 @@ fn sharded_partial_files_merge_to_the_unsharded_bytes() {
     }
 }
 
+/// The job-level finish of a sharded run (what `profuse fuse-shard` + `profuse run
+/// --fuse-partials` and the Ray driver do): the bytes of an unsharded job, and shards of
+/// other inputs are refused, naming the field that differs.
+#[test]
+fn job_shards_finish_to_the_unsharded_bytes_and_foreign_shards_are_refused() {
+    use profuse_fuse::job::{run, run_merged, Job, Params};
+    let fx = tiny(23, 6000);
+    let dir = tempfile::tempdir().unwrap();
+    let file = |n: &str| dir.path().join(n);
+    fx.proposals(1)
+        .write(file("proposals.safetensors"))
+        .unwrap();
+    fx.proposals_without_first()
+        .write(file("other_proposals.safetensors"))
+        .unwrap();
+    let base = Job::new(
+        &fx.path.join("gt/gaussians.safetensors"),
+        &fx.path.join("cameras.safetensors"),
+        &fx.path.join("masks.safetensors"),
+    );
+    let params = Params::default();
+    let job = base.clone().with_proposals(&file("proposals.safetensors"));
+    run(
+        &job.clone().with_out(&file("whole.safetensors")),
+        &params,
+        &mut |_| {},
+    )
+    .unwrap();
+    let shard = |job: &Job, range: std::ops::Range<usize>, name: &str| {
+        let mut j = job.clone();
+        j.views = Some(range);
+        j.partial_out = Some(file(name));
+        run(&j, &params, &mut |_| {}).unwrap();
+        file(name)
+    };
+    let shards = vec![
+        shard(&job, 0..3, "a.safetensors"),
+        shard(&job, 3..4, "b.safetensors"),
+    ];
+    let merged = run_merged(
+        &job.clone().with_out(&file("merged.safetensors")),
+        &params,
+        &shards,
+    )
+    .unwrap();
+    assert_eq!(
+        std::fs::read(file("merged.safetensors")).unwrap(),
+        std::fs::read(file("whole.safetensors")).unwrap()
+    );
+    assert_eq!(merged.report.views, [0, 4]);
+    assert!(merged.partial.is_complete());
+
+    // A shard made with other proposals (e.g. before warp-graph ran again).
+    let other = job
+        .clone()
+        .with_proposals(&file("other_proposals.safetensors"));
+    let foreign = vec![shards[0].clone(), shard(&other, 3..4, "c.safetensors")];
+    let err = run_merged(
+        &job.clone().with_out(&file("x.safetensors")),
+        &params,
+        &foreign,
+    )
+    .unwrap_err();
+    assert!(matches!(err, FuseError::PartialMismatch { .. }), "{err}");
+    let all_other = vec![shard(&other, 0..3, "d.safetensors"), file("c.safetensors")];
+    let err = run_merged(
+        &job.clone().with_out(&file("x.safetensors")),
+        &params,
+        &all_other,
+    )
+    .unwrap_err();
+    match &err {
+        FuseError::ShardOfOtherInputs { field, shards, .. } => {
+            assert!(
+                ["num_groups", "mask_group", "mask_proposal"].contains(field),
+                "{err}"
+            );
+            assert!(shards.contains("d.safetensors"), "{err}");
+        }
+        e => panic!("expected ShardOfOtherInputs, got {e}"),
+    }
+    // Another K, and a shard set missing a view.
+    let k20 = Params { k: 20, ..params };
+    let err = run_merged(&job.clone().with_out(&file("x.safetensors")), &k20, &shards).unwrap_err();
+    assert!(
+        matches!(err, FuseError::ShardOfOtherInputs { field: "k", .. }),
+        "{err}"
+    );
+    let err = run_merged(
+        &job.clone().with_out(&file("x.safetensors")),
+        &params,
+        &shards[..1],
+    )
+    .unwrap_err();
+    assert!(matches!(err, FuseError::MissingViews { .. }), "{err}");
+    assert!(
+        !file("x.safetensors").exists(),
+        "a refused finish writes nothing"
+    );
+}
+
 fn whole_counts(scene: &Scene<'_>, groups: &Groups) -> profuse_fuse::HitCounts {
     accumulate(scene, groups, 10, 0..4, &mut |_| {})
         .unwrap()

@@ -50,7 +50,11 @@ pub fn run_and_record(
 ) -> Result<Value> {
     let summary = run(scene, config, opts, events)?;
     let paths = Paths::new(scene, &summary.out, config.fuse.no_proposals);
-    let scores = evaluate_run(&paths, config, &summary)?;
+    // A run that stopped early has nothing to score yet.
+    let scores = match opts.until {
+        None => json!(evaluate_run(&paths, config, &summary)?),
+        Some(_) => Value::Null,
+    };
     let mut value = serde_json::to_value(&summary).unwrap_or(Value::Null);
     if let Value::Object(map) = &mut value {
         map.insert("metrics".into(), json!(scores));

@@ -51,4 +51,7 @@ pub mod stage;
 pub mod sweep;
 
 pub use error::{PipelineError, Result};
-pub use run::{run, Event, Paths, RegisteredMasks, RunOptions, StageLine, Summary, SCANNET_SETS};
+pub use run::{
+    fuse_shard, run, Event, Paths, RegisteredMasks, RunOptions, StageLine, StageName, Summary,
+    SCANNET_SETS,
+};

@@ -32,6 +32,66 @@ pub struct RunOptions {
     /// When another run holds the output directory's lock, wait for it instead of
     /// failing with [`PipelineError::Output`] (`OutputError::Locked`).
     pub wait: bool,
+    /// Stop after this stage (the later ones neither run nor are checked); `None` runs
+    /// every stage. A run that stops early is not scored.
+    pub until: Option<StageName>,
+    /// Finish the fuse stage from these partial sums of disjoint view shards (written by
+    /// [`fuse_shard`], e.g. on other machines) instead of rendering every view: the
+    /// features are byte-identical to an unsharded fuse
+    /// ([`profuse_fuse::job::run_merged`], which refuses shards of other inputs).
+    pub fuse_partials: Vec<PathBuf>,
+}
+
+/// The stages of [`run`], in order, for [`RunOptions::until`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum StageName {
+    /// Triangulated Gaussians.
+    GsInit,
+    /// The proposals (warp-graph, or a given file).
+    WarpGraph,
+    /// Registration.
+    Fuse,
+    /// Product quantisation.
+    Pq,
+    /// The text queries.
+    Query,
+    /// The labelled mesh (when the scene has one).
+    VertexTransfer,
+}
+
+impl StageName {
+    /// Every stage with its command-line name.
+    pub const ALL: [(StageName, &'static str); 6] = [
+        (StageName::GsInit, "gs-init"),
+        (StageName::WarpGraph, "warp-graph"),
+        (StageName::Fuse, "fuse"),
+        (StageName::Pq, "pq"),
+        (StageName::Query, "query"),
+        (StageName::VertexTransfer, "vertex-transfer"),
+    ];
+
+    /// The command-line name.
+    pub fn name(self) -> &'static str {
+        Self::ALL
+            .iter()
+            .find(|(s, _)| *s == self)
+            .map_or("?", |(_, n)| n)
+    }
+}
+
+impl std::str::FromStr for StageName {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        Self::ALL
+            .iter()
+            .find(|(_, n)| *n == s)
+            .map(|(stage, _)| *stage)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Self::ALL.iter().map(|(_, n)| *n).collect();
+                format!("unknown stage {s:?}; stages: {}", names.join(", "))
+            })
+    }
 }
 
 /// Progress of a run, for a front end to display.
@@ -329,21 +389,8 @@ pub fn run(
         force: opts.force,
         events,
     };
-    let mut lines = vec![gs_init_stage(&runner, config, &p)?];
-    if !config.fuse.no_proposals {
-        lines.push(match &opts.proposals {
-            Some(given) => given_proposals_stage(&runner, &p, given)?,
-            None => warp_graph_stage(&runner, config, &p)?,
-        });
-    }
-    let (fuse_line, registered) = fuse_stage(&runner, config, &p)?;
-    lines.push(fuse_line);
-    lines.push(pq_stage(&runner, config, &p)?);
-    lines.push(query_stage(&runner, config, &p)?);
-    if let Some(mesh) = p.mesh() {
-        lines.push(vertex_transfer_stage(&runner, config, &p, &mesh)?);
-    }
-
+    let mut lines = Vec::new();
+    let registered = run_stages(&runner, config, opts, &p, &mut lines)?;
     let timing_s = timing(&lines);
     Ok(Summary {
         scene: scene.to_path_buf(),
@@ -352,6 +399,85 @@ pub fn run(
         timing_s,
         registered,
     })
+}
+
+/// The stages in order, up to [`RunOptions::until`]; returns what fuse registered when it
+/// ran.
+fn run_stages(
+    runner: &Runner<'_>,
+    config: &Config,
+    opts: &RunOptions,
+    p: &Paths,
+    lines: &mut Vec<StageLine>,
+) -> Result<Option<RegisteredMasks>> {
+    let stop_after = |stage: StageName| opts.until.is_some_and(|u| u <= stage);
+    lines.push(gs_init_stage(runner, config, p)?);
+    if stop_after(StageName::GsInit) {
+        return Ok(None);
+    }
+    if !config.fuse.no_proposals {
+        lines.push(match &opts.proposals {
+            Some(given) => given_proposals_stage(runner, p, given)?,
+            None => warp_graph_stage(runner, config, p)?,
+        });
+    }
+    if stop_after(StageName::WarpGraph) {
+        return Ok(None);
+    }
+    let (fuse_line, registered) = fuse_stage(runner, config, p, &opts.fuse_partials)?;
+    lines.push(fuse_line);
+    if stop_after(StageName::Fuse) {
+        return Ok(registered);
+    }
+    lines.push(pq_stage(runner, config, p)?);
+    if stop_after(StageName::Pq) {
+        return Ok(registered);
+    }
+    lines.push(query_stage(runner, config, p)?);
+    if stop_after(StageName::Query) {
+        return Ok(registered);
+    }
+    if let Some(mesh) = p.mesh() {
+        lines.push(vertex_transfer_stage(runner, config, p, &mesh)?);
+    }
+    Ok(registered)
+}
+
+/// One view shard of the fuse stage of a run: renders views `views` of the scene into the
+/// run's Gaussians and proposals (`out_dir`, written by a run that reached warp-graph)
+/// with the run's configuration, and writes the exact partial sums to `partial_out`
+/// (atomically) for [`RunOptions::fuse_partials`]. Takes no lock: it reads the output
+/// directory and writes only `partial_out`, so shards run in parallel, anywhere the files
+/// are visible.
+pub fn fuse_shard(
+    scene: &Path,
+    out_dir: &Path,
+    config: &Config,
+    views: std::ops::Range<usize>,
+    partial_out: &Path,
+    on_view: &mut dyn FnMut(usize),
+) -> Result<profuse_fuse::job::Report> {
+    config.validate()?;
+    let p = Paths::new(scene, out_dir, config.fuse.no_proposals);
+    check_input(
+        "fuse",
+        &p.gaussians,
+        "gaussians of a run that reached gs-init",
+    )?;
+    if !config.fuse.no_proposals {
+        check_input(
+            "fuse",
+            &p.proposals,
+            "proposals of a run that reached warp-graph",
+        )?;
+    }
+    profuse_formats::output::check_output_file(partial_out)?;
+    let mut job = fuse_job(config, &p);
+    job.views = Some(views);
+    job.partial_out = Some(partial_out.to_path_buf());
+    let run = profuse_fuse::job::run(&job, &config.fuse, &mut |v| on_view(v.view))
+        .map_err(stage_err("fuse"))?;
+    Ok(run.report)
 }
 
 impl Runner<'_> {
@@ -477,6 +603,7 @@ fn fuse_stage(
     r: &Runner<'_>,
     config: &Config,
     p: &Paths,
+    partials: &[PathBuf],
 ) -> Result<(StageLine, Option<RegisteredMasks>)> {
     let fuse_name = if config.fuse.no_proposals {
         "fuse_baseline"
@@ -496,12 +623,16 @@ fn fuse_stage(
         vec![p.features.clone()],
         || {
             let job = fuse_job(config, p).with_out(&p.features);
-            let views = Cameras::read(&p.cameras).map_or(0, |c| c.len());
-            let mut done = 0;
-            let run = profuse_fuse::job::run(&job, &config.fuse, &mut |_| {
-                done += 1;
-                r.progress(done, views)
-            })
+            let run = if partials.is_empty() {
+                let views = Cameras::read(&p.cameras).map_or(0, |c| c.len());
+                let mut done = 0;
+                profuse_fuse::job::run(&job, &config.fuse, &mut |_| {
+                    done += 1;
+                    r.progress(done, views)
+                })
+            } else {
+                profuse_fuse::job::run_merged(&job, &config.fuse, partials)
+            }
             .map_err(stage_err("fuse"))?;
             registered = Some(RegisteredMasks(std::sync::Arc::new(
                 profuse_fuse::registered_mask_descriptors(&run.partial),

@@ -176,7 +176,7 @@ pub fn run_oracle(scene: &Path, config: &Config) -> Result<BTreeMap<String, Valu
         out: Some(out),
         force: false,
         proposals: Some(given),
-        wait: false,
+        ..RunOptions::default()
     };
     let summary = run(scene, config, &opts, &|_| {})?;
     evaluate_run(&Paths::new(scene, &summary.out, false), config, &summary)

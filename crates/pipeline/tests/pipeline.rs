@@ -231,7 +231,7 @@ fn given_proposals_replace_warp_graph() {
         out: Some(out.clone()),
         force: false,
         proposals: Some(given.clone()),
-        wait: false,
+        ..RunOptions::default()
     };
     let again = run(dir.path(), &tiny_config(), &opts, &|_| {}).unwrap();
     assert_eq!(again.stages[1].stage, "proposals");

@@ -1,21 +1,9 @@
-//! `profuse`: the umbrella command of the ProFuse pipeline: `inspect` (SPEC.md §5 report of
-//! any file), `run` (every stage with up-to-date checks), `demo` (the paper's experiment
-//! against the `--no-proposals` baseline on a synth scene) and `sweep` (the demo over
-//! seeds and fault sets). The work lives in `profuse_pipeline` (`cli`, `demo`, `sweep`);
-//! this tool parses arguments, displays progress and prints.
+//! The command line of `profuse`: every subcommand and option with its help.
 
-use std::io::Write;
-use std::path::{Path, PathBuf};
-use std::process::ExitCode;
+use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
-use profuse_pipeline::cli;
-use profuse_pipeline::demo::{self, DemoOptions};
-use profuse_pipeline::sweep::{self, SweepEvent, SweepOptions};
-use profuse_pipeline::RunOptions;
-use profuse_tools::stages::StageBars;
-use profuse_tools::{chatty, print_result, run, BoxError};
-use serde_json::Value;
+use profuse_pipeline::StageName;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -23,13 +11,13 @@ use serde_json::Value;
     version,
     about = "ProFuse: open-vocabulary 3D Gaussians without render-supervised training"
 )]
-struct Cli {
+pub struct Cli {
     #[command(subcommand)]
-    command: Command,
+    pub command: Command,
 }
 
 #[derive(Subcommand, Debug)]
-enum Command {
+pub enum Command {
     /// Validate a ProFuse file and print its kind, version, tensors, metadata and counts as
     /// JSON on stdout. Exit code 0 when valid, 1 when invalid (the error also goes to stderr).
     Inspect {
@@ -49,6 +37,36 @@ enum Command {
         /// warp-graph; it must have one entry per mask of SCENE/masks.safetensors.
         #[arg(long, value_name = "FILE")]
         proposals: Option<PathBuf>,
+        /// Stop after this stage (gs-init, warp-graph, fuse, pq, query, vertex-transfer);
+        /// a run that stops early prints its stages but no scores. Used to split a run
+        /// into parts, e.g. `--until warp-graph`, then `fuse-shard` per view range (on any
+        /// machine that sees the files), then `--fuse-partials`.
+        #[arg(long, value_name = "STAGE")]
+        until: Option<StageName>,
+        /// Finish the fuse stage from these partial-sums files (written by `profuse
+        /// fuse-shard` over disjoint view ranges that together cover every view) instead of
+        /// rendering: byte-identical features. Shards made from other Gaussians,
+        /// proposals, masks or fuse parameters are refused.
+        #[arg(long, value_name = "FILE", num_args = 1..)]
+        fuse_partials: Vec<PathBuf>,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// One view shard of a run's fuse stage: render views A..B (half-open) of SCENE into
+    /// the Gaussians and proposals under --out-dir (from `profuse run --until warp-graph`)
+    /// with the run's configuration (give --config OUT/config.toml), and write the exact
+    /// partial sums to --partial-out for `profuse run --fuse-partials`. Takes no lock and
+    /// writes only --partial-out (atomically), so shards run in parallel on many machines.
+    /// Prints the fuse report as JSON on stdout.
+    FuseShard {
+        /// The scene directory.
+        scene: PathBuf,
+        /// The views to render, `A..B` (half-open).
+        #[arg(long, value_name = "A..B", value_parser = view_range)]
+        views: std::ops::Range<usize>,
+        /// The partial-sums file to write (profuse.fuse_partial).
+        #[arg(long, value_name = "FILE")]
+        partial_out: PathBuf,
         #[command(flatten)]
         common: Common,
     },
@@ -119,6 +137,23 @@ enum Command {
     },
 }
 
+/// `A..B` with A < B.
+fn view_range(s: &str) -> Result<std::ops::Range<usize>, String> {
+    let (a, b) = s
+        .split_once("..")
+        .ok_or_else(|| format!("expected A..B (half-open view range), got {s:?}"))?;
+    let parse = |x: &str| {
+        x.trim()
+            .parse::<usize>()
+            .map_err(|e| format!("{x:?} in {s:?}: {e}"))
+    };
+    let (a, b) = (parse(a)?, parse(b)?);
+    if a >= b {
+        return Err(format!("empty view range {s:?}: A must be below B"));
+    }
+    Ok(a..b)
+}
+
 /// The synth presets an experiment runs on (see the argument help).
 fn preset(name: &str) -> Result<synth::Preset, String> {
     match name {
@@ -129,171 +164,39 @@ fn preset(name: &str) -> Result<synth::Preset, String> {
 
 /// The synthetic scene of `demo`.
 #[derive(Args, Debug)]
-struct SceneArgs {
+pub struct SceneArgs {
     /// The synth preset: `tiny` (4 views at 64x48, D = 64; set `pq.m` to a divisor of 64)
     /// or `demo` (24 views at 320x240, 10 objects, D = 512).
     #[arg(long, default_value = "demo", value_parser = preset)]
-    preset: synth::Preset,
+    pub preset: synth::Preset,
     /// The synth fault set applied on top of the preset (see `synth --help`).
     #[arg(long, value_name = "NAME", default_value = "default",
           value_parser = clap::builder::PossibleValuesParser::new(synth::FaultSet::NAMES))]
-    faults: String,
+    pub faults: String,
 }
 
 #[derive(Args, Debug)]
-struct Common {
+pub struct Common {
     /// TOML configuration (sections gs_init, warp_graph, fuse, pq, query, vertex_transfer;
     /// `out/config.toml` of a run is a complete one). For `run` missing keys take the
     /// paper's defaults; for `demo` they keep the demo's settings (gs_init.budget=3000,
     /// pq.sample=16384, pq.iters=10) and the file's keys apply on top.
     #[arg(long, value_name = "TOML")]
-    config: Option<PathBuf>,
+    pub config: Option<PathBuf>,
     /// Override one parameter, e.g. `--set fuse.k=40 --set query.threshold=0.6` (TOML
     /// values; repeatable; applied after --config).
     #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
-    set: Vec<String>,
+    pub set: Vec<String>,
     /// Redo every stage even when its outputs are up to date.
     #[arg(long)]
-    force: bool,
+    pub force: bool,
     /// Output directory (default: SCENE/out).
     #[arg(long, value_name = "DIR")]
-    out_dir: Option<PathBuf>,
+    pub out_dir: Option<PathBuf>,
     /// Wait while another run holds the output directory's lock (default: fail at once).
     #[arg(long)]
-    wait: bool,
+    pub wait: bool,
     /// No progress bars or tables on stderr.
     #[arg(long)]
-    quiet: bool,
-}
-
-fn main() -> ExitCode {
-    let cli = Cli::parse();
-    match cli.command {
-        Command::Inspect { file } => inspect(&file),
-        Command::Run {
-            scene,
-            proposals,
-            common,
-        } => run(|| run_scene(&scene, proposals, &common)),
-        Command::Demo {
-            out,
-            seed,
-            scene,
-            json,
-            common,
-        } => print_result(demo(out, seed, &scene, json, &common)),
-        Command::Sweep {
-            seeds,
-            faults,
-            preset,
-            json,
-            out,
-            keep,
-            oracle,
-            config,
-            set,
-            quiet,
-        } => print_result((|| {
-            let opts = SweepOptions {
-                seeds: sweep::parse_seeds(&seeds)?,
-                faults: sweep::parse_fault_sets(&faults)?,
-                preset,
-                out,
-                keep,
-                config: cli::demo_config(config.as_deref(), &set)?,
-                oracle,
-            };
-            run_sweep(&opts, json, quiet)
-        })()),
-    }
-}
-
-fn inspect(file: &Path) -> ExitCode {
-    let report = profuse_formats::inspect(file);
-    let text = serde_json::to_string_pretty(&report.json).unwrap_or_else(|_| "{}".to_string());
-    if writeln!(std::io::stdout().lock(), "{text}").is_err() {
-        return ExitCode::FAILURE;
-    }
-    match report.error {
-        None => ExitCode::SUCCESS,
-        Some(e) => {
-            profuse_tools::report_error(&e);
-            ExitCode::FAILURE
-        }
-    }
-}
-
-fn run_options(common: &Common, proposals: Option<PathBuf>) -> RunOptions {
-    RunOptions {
-        out: common.out_dir.clone(),
-        force: common.force,
-        proposals,
-        wait: common.wait,
-    }
-}
-
-fn run_scene(scene: &Path, proposals: Option<PathBuf>, common: &Common) -> Result<Value, BoxError> {
-    let config = cli::run_config(common.config.as_deref(), &common.set)?;
-    let bars = StageBars::new(chatty(common.quiet));
-    let opts = run_options(common, proposals);
-    let value = cli::run_and_record(scene, &config, &opts, &|e| bars.event(e))?;
-    print_timing(common.quiet, &value);
-    Ok(value)
-}
-
-/// The paper's Table 4 on stderr, from a summary's `timing_s`, unless quiet.
-fn print_timing(quiet: bool, summary: &Value) {
-    if chatty(quiet) {
-        if let Ok(timing) = serde_json::from_value(summary["timing_s"].clone()) {
-            eprintln!("{}", cli::timing_table(&timing));
-        }
-    }
-}
-
-fn demo(
-    out: Option<PathBuf>,
-    seed: u64,
-    scene: &SceneArgs,
-    as_json: bool,
-    common: &Common,
-) -> Result<String, BoxError> {
-    let show = chatty(common.quiet);
-    let opts = DemoOptions {
-        scene: out,
-        seed,
-        preset: scene.preset,
-        faults: synth::FaultSet::parse(&scene.faults)?,
-        config: cli::demo_config(common.config.as_deref(), &common.set)?,
-        run: run_options(common, None),
-    };
-    let bars = StageBars::new(show);
-    let value = demo::run_demo(&opts, &|e| bars.event(e), &|msg| {
-        if show {
-            eprintln!("{msg}");
-        }
-    })?;
-    print_timing(common.quiet, &value);
-    Ok(if as_json {
-        serde_json::to_string_pretty(&value)?
-    } else {
-        demo::demo_text(&value)
-    })
-}
-
-fn run_sweep(opts: &SweepOptions, as_json: bool, quiet: bool) -> Result<String, BoxError> {
-    let show = chatty(quiet);
-    let events = |e: SweepEvent<'_>| {
-        if show {
-            eprintln!("{}", e.line());
-        }
-    };
-    let report = sweep::sweep(opts, &events)?;
-    if show && opts.keep {
-        eprintln!("scenes kept under {}", sweep::parent_dir(opts).display());
-    }
-    Ok(if as_json {
-        serde_json::to_string_pretty(&report)?
-    } else {
-        sweep::text_table(&report)
-    })
+    pub quiet: bool,
 }
