@@ -214,7 +214,7 @@ fn invalid(name: &'static str, value: String, expected: &'static str) -> WarpGra
 pub const DEFAULT_EDGE_TOL: f64 = f64::INFINITY;
 
 fn check(p: &DepthWarpParams) -> Result<()> {
-    if !(p.edge_tol > 0.0) {
+    if p.edge_tol.is_nan() || p.edge_tol <= 0.0 {
         return Err(invalid(
             "edge_tol",
             p.edge_tol.to_string(),

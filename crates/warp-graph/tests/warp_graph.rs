@@ -1444,6 +1444,13 @@ fn depth_warp_parameters_and_pairs_are_checked() {
     );
     bad(
         warp_graph::DepthWarpParams {
+            edge_tol: f64::NAN,
+            ..d()
+        },
+        "edge_tol",
+    );
+    bad(
+        warp_graph::DepthWarpParams {
             pairs: warp_graph::Pairs::Nearest(0),
             ..d()
         },
