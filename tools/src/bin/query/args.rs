@@ -38,7 +38,7 @@ pub(crate) enum Command {
     /// with `--layout lerf` (what the LERF-OVS evaluation reads): OUT/<stem>/<prompt>.png,
     /// OUT/selection/<prompt>.safetensors, OUT/overlay/<stem>/<prompt>.png. <stem> is the
     /// file stem of the view's image name.
-    Run(RunArgs),
+    Run(Box<RunArgs>),
     /// Score prompts without rendering: per prompt the score distribution and the best
     /// Gaussians (with --pq and cosine, found by an ADC shortlist re-ranked with the
     /// decoded descriptors, paper §3.4); optionally every valid Gaussian's score as a

@@ -29,7 +29,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let quiet = cli.quiet;
     run(|| match cli.command {
-        Command::Run(a) => run_query(a, quiet),
+        Command::Run(a) => run_query(*a, quiet),
         Command::Scores(a) => scores(a),
         Command::Bench { params, threads } => {
             init_threads(threads)?;
