@@ -265,7 +265,16 @@ fn warps_from_depth_feed_run_and_are_deterministic() {
     // The proposals from these warps.
     std::fs::copy(&m1, scene.join("matches.safetensors")).unwrap();
     let proposals = dir.path().join("p.safetensors");
-    super::assert_succeeded(&warp_graph(&scene, &proposals, &["--quiet"], None));
+    let cams = scene.join("cameras.safetensors");
+    let gauss = scene.join("gt/gaussians.safetensors");
+    let geometry = [
+        "--cameras",
+        cams.to_str().unwrap(),
+        "--gaussians",
+        gauss.to_str().unwrap(),
+        "--quiet",
+    ];
+    super::assert_succeeded(&warp_graph(&scene, &proposals, &geometry, None));
     let p = Proposals::read(&proposals).unwrap();
     p.check_against(&Masks::read(scene.join("masks.safetensors")).unwrap(), "p")
         .unwrap();
