@@ -466,3 +466,76 @@ fn a_query_failing_midway_leaves_the_earlier_output_whole() {
     names.sort();
     assert_eq!(names, ["out", "scene"]);
 }
+
+/// `query run --click` by mask with `--export-ply`: the clicked mask's selection, its
+/// files, and the PLY (read back by scene-io) holding exactly the selected Gaussians; a
+/// click outside the image exits 1 naming the view and writes nothing.
+#[test]
+fn query_click_selects_and_exports_a_ply() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = scene(dir.path(), 2, 96, 8000, false);
+    // Synth's mask features are class prototypes, as are the test's descriptors.
+    let masks = profuse_formats::Masks::read(root.join("masks.safetensors")).unwrap();
+    let cams = profuse_formats::Cameras::read(root.join("cameras.safetensors")).unwrap();
+    let [w, h] = cams.image_size[0];
+    let (cx, cy) = (0..masks.height)
+        .flat_map(|y| (0..masks.width).map(move |x| (x, y)))
+        .find(|&(x, y)| masks.mask_at(0, x, y).is_some() && x > 4 && y > 4)
+        .unwrap();
+    let x = (cx as f64 + 0.5) * f64::from(w) / masks.width as f64;
+    let y = (cy as f64 + 0.5) * f64::from(h) / masks.height as f64;
+    let mut args = base_args(&root, "--features");
+    args.truncate(7); // no --prompts: a click needs none
+    let ply = dir.path().join("sel.ply");
+    let out_dir = dir.path().join("out");
+    let click = [
+        "--click".to_string(),
+        "0".into(),
+        x.to_string(),
+        y.to_string(),
+    ];
+    let masks_path = root
+        .join("masks.safetensors")
+        .to_string_lossy()
+        .into_owned();
+    let ply_arg = ply.to_string_lossy().into_owned();
+    let mut extra: Vec<&str> = click.iter().map(String::as_str).collect();
+    extra.extend([
+        "--masks",
+        &masks_path,
+        "--click-by",
+        "mask",
+        "--threshold",
+        "0.7",
+        "--export-ply",
+        &ply_arg,
+    ]);
+    let out = run(args.clone(), &extra, &out_dir);
+    super::assert_succeeded(&out);
+    let report = super::json(&out);
+    let name = format!("click_v0_x{x}_y{y}");
+    assert_eq!(report["prompts"][0]["prompt"], name.as_str());
+    assert_eq!(report["click"]["source"], "mask");
+    let sel = Selection::read(out_dir.join(&name).join("selection.safetensors")).unwrap();
+    assert!(!sel.gaussian_ids.is_empty());
+    assert_eq!(sel.extra["click_by"], "mask");
+    assert!(out_dir.join(&name).join("masks/frame_00001.png").is_file());
+    let (back, _) = scene_io::ply::read_inria_ply(&ply).unwrap();
+    let g = Gaussians::read(root.join("gt/gaussians.safetensors")).unwrap();
+    assert_eq!(back.len(), sel.gaussian_ids.len());
+    for (k, &i) in sel.gaussian_ids.iter().enumerate() {
+        assert_eq!(back.means[k], g.means[i as usize]);
+    }
+    assert_eq!(report["export_ply"]["gaussians"], sel.gaussian_ids.len());
+
+    // Outside the image: exit 1, the view named, nothing written.
+    let out_dir = dir.path().join("out2");
+    let outside = w.to_string();
+    let mut extra = vec!["--click", "0", &outside, "1", "--masks", &masks_path];
+    extra.extend(["--click-by", "mask", "--threshold", "0.7"]);
+    let out = run(args, &extra, &out_dir);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("outside view 0's image"), "{err}");
+    assert!(!out_dir.exists());
+}

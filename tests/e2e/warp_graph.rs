@@ -229,3 +229,64 @@ fn bench_prints_throughput_and_memory() {
     assert!(r["peak_rss_mb"].as_f64().unwrap() > 0.0);
     assert!(r["ari"].as_f64().unwrap() > 0.9, "{r}");
 }
+
+/// `warp-graph warps`: dense warps from the Gaussians' depth, written as a matches file
+/// that `warp-graph run` reads; 1 and 4 threads write the same bytes; a bad pair exits 1
+/// and writes nothing.
+#[test]
+fn warps_from_depth_feed_run_and_are_deterministic() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    synth(&scene, &["--gaussians", "3000", "--no-matches"]);
+    let warps = |out: &Path, extra: &[&str], threads: &str| {
+        Command::new(env!("CARGO_BIN_EXE_warp-graph"))
+            .arg("warps")
+            .arg("--gaussians")
+            .arg(scene.join("gt/gaussians.safetensors"))
+            .arg("--cameras")
+            .arg(scene.join("cameras.safetensors"))
+            .arg("--out")
+            .arg(out)
+            .args(extra)
+            .arg("--quiet")
+            .env("RAYON_NUM_THREADS", threads)
+            .output()
+            .unwrap()
+    };
+    let m1 = dir.path().join("m1.safetensors");
+    let o = warps(&m1, &["--stride", "2", "--nearest", "2"], "1");
+    super::assert_succeeded(&o);
+    let report = super::json(&o);
+    assert_eq!(report["grid"], serde_json::json!([32, 24]));
+    assert!(report["kept"].as_u64().unwrap() > 0, "{report}");
+    let m4 = dir.path().join("m4.safetensors");
+    super::assert_succeeded(&warps(&m4, &["--stride", "2", "--nearest", "2"], "4"));
+    assert_eq!(std::fs::read(&m1).unwrap(), std::fs::read(&m4).unwrap());
+    // The proposals from these warps.
+    std::fs::copy(&m1, scene.join("matches.safetensors")).unwrap();
+    let proposals = dir.path().join("p.safetensors");
+    let cams = scene.join("cameras.safetensors");
+    let gauss = scene.join("gt/gaussians.safetensors");
+    let geometry = [
+        "--cameras",
+        cams.to_str().unwrap(),
+        "--gaussians",
+        gauss.to_str().unwrap(),
+        "--quiet",
+    ];
+    super::assert_succeeded(&warp_graph(&scene, &proposals, &geometry, None));
+    let p = Proposals::read(&proposals).unwrap();
+    p.check_against(&Masks::read(scene.join("masks.safetensors")).unwrap(), "p")
+        .unwrap();
+    assert!(!p.is_empty());
+    // A pair of a view with itself.
+    let bad = dir.path().join("bad.safetensors");
+    let o = warps(&bad, &["--pairs", "0-1,2-2"], "1");
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("gaussians.safetensors") && err.contains("row 1"),
+        "{err}"
+    );
+    assert!(!bad.exists());
+}

@@ -481,3 +481,49 @@ pub fn accumulate(
         timings,
     })
 }
+
+/// The pooled descriptor of one set of masks, as eq. proposal-desc forms a proposal's:
+/// normalise(Σ_{m ∈ members} μ(m) f_m), with the masses μ from the same top-K rendering
+/// as [`accumulate`] (the same routine: the members are one group, every other mask none,
+/// and [`group_descriptors`] pools them), so the result equals the proposal's row of a
+/// full registration. Only the views that hold a member are rendered, one at a time.
+/// `None` when the pool is zero (no member is hit by any Gaussian, or `members` is
+/// empty). A member id `>= M` is a [`FuseError::BadGrouping`].
+pub fn pooled_descriptor(scene: &Scene<'_>, members: &[u32], k: usize) -> Result<Option<Vec<f32>>> {
+    let masks = scene.masks;
+    let num_masks = masks.num_masks();
+    let mut mask_group = vec![NO_GROUP; num_masks];
+    for &m in members {
+        let slot = mask_group
+            .get_mut(m as usize)
+            .ok_or_else(|| FuseError::BadGrouping {
+                masks: scene.names.masks.clone(),
+                detail: format!("member mask {m} of {num_masks}"),
+            })?;
+        *slot = 0;
+    }
+    let groups = Groups {
+        grouping: Grouping::Proposals {
+            orphans: Orphans::Ignore,
+        },
+        mask_group,
+        num_groups: 1,
+        mask_proposal: Vec::new(),
+    };
+    scene.check()?;
+    let mut views: Vec<usize> = members.iter().map(|&m| masks.view_of(m as usize)).collect();
+    views.sort_unstable();
+    views.dedup();
+    let parts = views
+        .iter()
+        .map(|&v| accumulate(scene, &groups, k, v..v + 1, &mut |_| {}))
+        .collect::<Result<Vec<_>>>()?;
+    if parts.is_empty() {
+        return Ok(None);
+    }
+    let pooled = group_descriptors(&merge(&parts, &[])?);
+    Ok(pooled
+        .iter()
+        .any(|x| *x != 0.0)
+        .then(|| pooled.iter().map(|x| *x as f32).collect()))
+}

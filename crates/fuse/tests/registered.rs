@@ -72,3 +72,57 @@ fn each_mask_gets_its_groups_descriptor_or_none() {
         assert!((cos - 1.0).abs() < 1e-3, "mask {m}: cosine {cos}");
     }
 }
+
+/// `pooled_descriptor` of a proposal's members, rendering only their views, equals the
+/// proposal's row of a full registration over every view, bit for bit in f32; a member
+/// set without mass is `None`, and an id beyond the masks is an error.
+#[test]
+fn pooled_descriptor_of_a_proposal_equals_its_row_of_the_full_registration() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = synth::Config::preset(synth::Preset::Tiny, 3);
+    config.gaussians = 3000;
+    config.write_matches = false;
+    synth::generate(&config, dir.path()).unwrap();
+    let gaussians = Gaussians::read(dir.path().join("gt/gaussians.safetensors")).unwrap();
+    let cameras = Cameras::read(dir.path().join("cameras.safetensors")).unwrap();
+    let masks = Masks::read(dir.path().join("masks.safetensors")).unwrap();
+    let proposals = profuse_fuse::testing::proposals_from_mask_objects(
+        dir.path().join("gt/mask_objects.json"),
+        &masks,
+        1,
+    )
+    .unwrap();
+    let scene = Scene::new(&gaussians, &cameras, &masks);
+    let d = masks.dim;
+    let groups = Groups::from_proposals(&masks, &proposals, Orphans::Ignore, "p").unwrap();
+    let partial = accumulate(&scene, &groups, 10, 0..cameras.len(), &mut |_| {}).unwrap();
+    let desc = group_descriptors(&partial);
+    let mut checked = 0;
+    for p in 0..proposals.len() as u32 {
+        let members: Vec<u32> = (0..masks.num_masks() as u32)
+            .filter(|&m| proposals.mask_proposal[m as usize] == p)
+            .collect();
+        let want: Vec<f32> = desc[p as usize * d..][..d]
+            .iter()
+            .map(|x| *x as f32)
+            .collect();
+        let got = profuse_fuse::pooled_descriptor(&scene, &members, 10).unwrap();
+        match got {
+            Some(got) => {
+                assert_eq!(got, want, "proposal {p}");
+                checked += 1;
+            }
+            None => assert!(want.iter().all(|x| *x == 0.0), "proposal {p}"),
+        }
+    }
+    assert!(checked >= 4, "only {checked} proposals have a descriptor");
+    assert_eq!(
+        profuse_fuse::pooled_descriptor(&scene, &[], 10).unwrap(),
+        None
+    );
+    let m = masks.num_masks() as u32;
+    assert!(matches!(
+        profuse_fuse::pooled_descriptor(&scene, &[m], 10),
+        Err(profuse_fuse::FuseError::BadGrouping { .. })
+    ));
+}

@@ -162,6 +162,62 @@ pub enum QueryError {
         #[source]
         source: io::Error,
     },
+    /// The registration code could not pool the clicked proposal's masks (masks that do
+    /// not belong to the cameras, an unusable camera).
+    #[error(transparent)]
+    Fuse(#[from] profuse_fuse::FuseError),
+    /// A click lies outside its view's image.
+    #[error(
+        "{cameras}: the click ({x}, {y}) is outside view {view}'s image of {width}x{height}          pixels (x is the column in [0, {width}), y the row in [0, {height}))"
+    )]
+    PixelOutsideImage {
+        /// The cameras file.
+        cameras: String,
+        /// The view.
+        view: usize,
+        /// The column coordinate.
+        x: f64,
+        /// The row coordinate.
+        y: f64,
+        /// The image width.
+        width: u32,
+        /// The image height.
+        height: u32,
+    },
+    /// No mask covers the clicked pixel (background, label "no mask").
+    #[error(
+        "{masks}: no mask under the click ({x}, {y}) in view {view} (mask-grid cell \
+         [column, row] = {cell:?} is background); click on a segmented region"
+    )]
+    NoMaskUnderPixel {
+        /// The masks file.
+        masks: String,
+        /// The view.
+        view: usize,
+        /// The column coordinate.
+        x: f64,
+        /// The row coordinate.
+        y: f64,
+        /// The mask-grid cell (column, row).
+        cell: [usize; 2],
+    },
+    /// A click by proposal needs the proposals file.
+    #[error("a click selects by the mask's proposal: give the proposals file (or click by mask)")]
+    MissingProposals,
+    /// The clicked mask has no usable query vector.
+    #[error("no query vector for the click: {reason}")]
+    NoClickDescriptor {
+        /// Why.
+        reason: String,
+    },
+    /// Some selected Gaussian ids are not in the Gaussian set.
+    #[error("selection id {id} is out of range for {count} Gaussians")]
+    SelectionOutOfRange {
+        /// The id.
+        id: u32,
+        /// N.
+        count: usize,
+    },
     /// A PNG could not be encoded.
     #[error("{path}: cannot encode PNG: {source}")]
     Image {

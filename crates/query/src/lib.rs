@@ -44,6 +44,18 @@
 //!   activations are per-pixel sums in slot order, and the renderer is bit-identical for
 //!   any thread count, so the output bytes do not depend on the thread count.
 //!
+//! # Query by click ([`click`])
+//!
+//! A click (view, x = column, y = row in image pixels) picks the mask under it in the
+//! masks file; its query vector is the pooled descriptor of that mask's 3D Context
+//! Proposal (eq. proposal-desc, computed by `profuse_fuse::pooled_descriptor`, the
+//! registration's own code, rendering only the proposal's views) or, with
+//! [`ClickBy::Mask`], the mask's own feature. [`ClickTarget::prompts`] makes it a one-row
+//! prompts table (plus the canonical negatives of a prompts file, for relevancy), so
+//! scoring, the selection rule and every output are those of a text query.
+//! [`selected_gaussians`] cuts the selected Gaussians out as a Gaussian set of their own
+//! (the query tool writes it as an INRIA PLY with scene-io's writer).
+//!
 //! # Outputs ([`Layout`])
 //!
 //! ```text
@@ -111,7 +123,9 @@
 //! ```
 
 mod activation;
+pub mod click;
 mod error;
+mod export;
 mod output;
 mod params;
 mod pipeline;
@@ -120,7 +134,9 @@ mod select;
 pub mod stats;
 
 pub use activation::{activation, Activation, Membership};
+pub use click::{resolve_click, Click, ClickBy, ClickSource, ClickTarget};
 pub use error::{QueryError, Result};
+pub use export::selected_gaussians;
 pub use output::{overlay, OVERLAY_MIX, OVERLAY_TINT};
 pub use params::Params;
 pub use pipeline::{

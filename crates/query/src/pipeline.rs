@@ -55,6 +55,14 @@ pub enum DescriptorSet {
 }
 
 impl DescriptorSet {
+    /// Reads the descriptors file.
+    pub fn read(path: &DescriptorPath) -> Result<DescriptorSet> {
+        Ok(match path {
+            DescriptorPath::Features(p) => DescriptorSet::Features(Features::read(p)?),
+            DescriptorPath::Pq(p) => DescriptorSet::Pq(Pq::read(p)?),
+        })
+    }
+
     /// Borrowed view for scoring.
     pub fn as_descriptors(&self) -> Descriptors<'_> {
         match self {
@@ -91,12 +99,8 @@ pub enum PromptSelection {
 impl ScoreInputs {
     /// Reads both files and checks that their dimensions agree.
     pub fn load(descriptors: &DescriptorPath, prompts: &Path) -> Result<ScoreInputs> {
-        let set = match descriptors {
-            DescriptorPath::Features(p) => DescriptorSet::Features(Features::read(p)?),
-            DescriptorPath::Pq(p) => DescriptorSet::Pq(Pq::read(p)?),
-        };
         ScoreInputs::new(
-            set,
+            DescriptorSet::read(descriptors)?,
             Prompts::read(prompts)?,
             &descriptors.path().display().to_string(),
             &prompts.display().to_string(),
@@ -396,6 +400,9 @@ pub struct PlannedPrompt {
     pub active: ActiveSet,
     /// Gaussians with a descriptor (the population a fraction is taken of).
     pub valid: usize,
+    /// More metadata for the prompt's selection file (a click's origin); empty from
+    /// [`Inputs::plan`].
+    pub extra: BTreeMap<String, String>,
 }
 
 /// One view of a plan.
@@ -519,6 +526,7 @@ impl Inputs {
                 file_name,
                 active: select(s, rule)?,
                 valid,
+                extra: BTreeMap::new(),
             });
         }
         Ok(Plan {
@@ -830,7 +838,7 @@ impl Plan {
 
     /// The selection file of a planned prompt.
     pub fn selection_file(&self, p: &PlannedPrompt, num_gaussians: usize) -> Selection {
-        let mut extra = BTreeMap::new();
+        let mut extra = p.extra.clone();
         extra.insert("score".to_string(), self.options.score.name().to_string());
         extra.insert("threshold".to_string(), format!("{:?}", p.active.threshold));
         extra.insert("rule".to_string(), rule_text(self.rule));

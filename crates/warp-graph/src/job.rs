@@ -156,3 +156,56 @@ pub fn run(
         seconds: start.elapsed().as_secs_f64(),
     })
 }
+
+/// The files of a `warps` run: dense warps from the Gaussians' rendered depth
+/// ([`crate::depth_warps`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct WarpsJob {
+    /// Gaussians (profuse.gaussians), e.g. from gs-init.
+    pub gaussians: PathBuf,
+    /// Cameras (profuse.cameras).
+    pub cameras: PathBuf,
+    /// The matches file to write.
+    pub out: PathBuf,
+}
+
+/// What a `warps` run did.
+#[derive(Debug, Clone, Serialize)]
+pub struct WarpsReport {
+    /// The counts.
+    #[serde(flatten)]
+    pub warps: crate::DepthWarpReport,
+    /// The matches file written.
+    #[serde(serialize_with = "profuse_formats::output::lossy_path::one")]
+    pub out: PathBuf,
+    /// Seconds, reading and writing included.
+    pub seconds: f64,
+}
+
+/// Runs a `warps` job; `progress` gets (depth maps and pairs done, total).
+pub fn run_warps(
+    job: &WarpsJob,
+    params: &crate::DepthWarpParams,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<WarpsReport, JobError> {
+    let start = Instant::now();
+    let gaussians = Gaussians::read(&job.gaussians)?;
+    let cameras = Cameras::read(&job.cameras)?;
+    let (matches, report) =
+        crate::depth_warps(&gaussians, &cameras, params, progress).map_err(|error| {
+            JobError::Inputs {
+                files: format!(
+                    "--gaussians {} --cameras {}",
+                    job.gaussians.display(),
+                    job.cameras.display()
+                ),
+                error: Box::new(error),
+            }
+        })?;
+    matches.write(&job.out)?;
+    Ok(WarpsReport {
+        warps: report,
+        out: job.out.clone(),
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}

@@ -126,6 +126,7 @@
 //! ```
 
 mod consensus;
+mod depth_warps;
 mod error;
 mod extent;
 mod flat;
@@ -147,6 +148,9 @@ use serde::Serialize;
 use splat_raster::{DepthMode, Rasterizer, RenderOptions, ViewRender};
 
 pub use consensus::{ConsensusParams, ConsensusStats, MIN_MASK_POINTS};
+pub use depth_warps::{
+    depth_warps, resolve_pairs, DepthWarpParams, DepthWarpReport, Pairs, DEFAULT_EDGE_TOL,
+};
 pub use error::{Result, WarpGraphError};
 pub use extent::{Extent, BINS, MIN_EXTENT_CELLS};
 pub use flat::FlatParams;

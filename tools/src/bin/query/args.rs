@@ -1,24 +1,13 @@
-//! `query`: open-vocabulary 3D selection (paper §3.4, §4.2). Scores every Gaussian's
-//! descriptor against text prompts, selects the active Gaussians in 3D, and writes per
-//! view activation masks (PNG), overlays and the selection files.
-//!
-//! Every input and output is a command-line argument. On success one JSON report object
-//! goes to stdout; progress goes to stderr when it is a terminal and `--quiet` is not given.
-//! On failure the error goes to stderr and the exit code is 1; bad input writes nothing.
+//! The query tool's command line.
 
 use std::path::PathBuf;
-use std::process::ExitCode;
-use std::time::Instant;
 
 use clap::{Args, Parser, Subcommand};
 use profuse_bench::query as bench;
-use profuse_formats::FileKind;
 use profuse_query::{
-    stats, DescriptorPath, Inputs, Layout, PromptSelection, QueryOptions, Rule, ScoreInputs,
-    ScoreKind, ViewSelection, DEFAULT_GAMMA, DEFAULT_TOP_K,
+    ClickBy, DescriptorPath, Layout, PromptSelection, ScoreKind, DEFAULT_GAMMA, DEFAULT_TOP_K,
 };
-use profuse_tools::{chatty, init_threads, progress_bar, run, BoxError};
-use serde_json::{json, Value};
+use profuse_tools::BoxError;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -33,23 +22,23 @@ use serde_json::{json, Value};
                   actmask). Each view's top-K is rendered once for all prompts. Prints one \
                   JSON report on stdout."
 )]
-struct Cli {
+pub(crate) struct Cli {
     /// Do not print progress on stderr.
     #[arg(long, global = true)]
-    quiet: bool,
+    pub(crate) quiet: bool,
     #[command(subcommand)]
-    command: Command,
+    pub(crate) command: Command,
 }
 
 #[derive(Debug, Subcommand)]
-enum Command {
+pub(crate) enum Command {
     /// Select Gaussians for prompts and write selections, masks and overlays. Outputs with
     /// `--layout prompt` (default): OUT/<prompt>/selection.safetensors,
     /// OUT/<prompt>/masks/<stem>.png (8-bit grey, 0 or 255), OUT/<prompt>/overlay/<stem>.png;
     /// with `--layout lerf` (what the LERF-OVS evaluation reads): OUT/<stem>/<prompt>.png,
     /// OUT/selection/<prompt>.safetensors, OUT/overlay/<stem>/<prompt>.png. <stem> is the
     /// file stem of the view's image name.
-    Run(RunArgs),
+    Run(Box<RunArgs>),
     /// Score prompts without rendering: per prompt the score distribution and the best
     /// Gaussians (with --pq and cosine, found by an ADC shortlist re-ranked with the
     /// decoded descriptors, paper §3.4); optionally every valid Gaussian's score as a
@@ -67,21 +56,29 @@ enum Command {
 }
 
 #[derive(Debug, Args)]
-struct DescriptorArgs {
+pub(crate) struct DescriptorArgs {
     /// Per-Gaussian descriptors: a profuse.features file (exact scores).
     #[arg(long, conflicts_with = "pq", required_unless_present = "pq")]
-    features: Option<PathBuf>,
+    pub(crate) features: Option<PathBuf>,
     /// Per-Gaussian descriptors: a profuse.pq file (ADC scores = cosines with the decoded
     /// descriptors).
     #[arg(long)]
-    pq: Option<PathBuf>,
-    /// Prompt embeddings (profuse.prompts), in the descriptors' embedding space.
+    pub(crate) pq: Option<PathBuf>,
+    /// Prompt embeddings (profuse.prompts), in the descriptors' embedding space. Required
+    /// for text prompts; with --click optional: it then only supplies the canonical
+    /// negatives (object, things, stuff, texture) for `--score relevancy`.
     #[arg(long)]
-    prompts: PathBuf,
+    pub(crate) prompts: Option<PathBuf>,
 }
 
 impl DescriptorArgs {
-    fn source(&self) -> Result<DescriptorPath, BoxError> {
+    pub(crate) fn prompts(&self) -> Result<&PathBuf, BoxError> {
+        self.prompts
+            .as_ref()
+            .ok_or_else(|| "give --prompts FILE (the prompt embeddings)".into())
+    }
+
+    pub(crate) fn source(&self) -> Result<DescriptorPath, BoxError> {
         match (&self.features, &self.pq) {
             (Some(f), None) => Ok(DescriptorPath::Features(f.clone())),
             (None, Some(p)) => Ok(DescriptorPath::Pq(p.clone())),
@@ -91,25 +88,25 @@ impl DescriptorArgs {
 }
 
 #[derive(Debug, Args)]
-struct PromptArgs {
+pub(crate) struct PromptArgs {
     /// A prompt name of the prompts file to query (repeat for several; all share one
     /// render pass).
     #[arg(long = "prompt", value_name = "NAME")]
-    prompt_names: Vec<String>,
+    pub(crate) prompt_names: Vec<String>,
     /// Query every prompt with a class id >= 0 (the file's `class_ids`).
     #[arg(long, conflicts_with_all = ["prompt_names", "all_prompts"])]
-    all_classes: bool,
+    pub(crate) all_classes: bool,
     /// Query every prompt except the canonical negatives (object, things, stuff, texture).
     #[arg(long, conflicts_with = "prompt_names")]
-    all_prompts: bool,
+    pub(crate) all_prompts: bool,
     /// Score: `cosine` = <q, f> (paper), `relevancy` = LERF's min over the canonical
     /// negatives of softmax(10 [cos(q,f), cos(n,f)])_0.
     #[arg(long, value_enum, default_value = "cosine")]
-    score: ScoreKind,
+    pub(crate) score: ScoreKind,
 }
 
 impl PromptArgs {
-    fn selection(&self) -> Result<PromptSelection, BoxError> {
+    pub(crate) fn selection(&self) -> Result<PromptSelection, BoxError> {
         if self.all_classes {
             Ok(PromptSelection::AllClasses)
         } else if self.all_prompts {
@@ -117,23 +114,23 @@ impl PromptArgs {
         } else if !self.prompt_names.is_empty() {
             Ok(PromptSelection::Names(self.prompt_names.clone()))
         } else {
-            Err("give --prompt NAME (repeatable), --all-classes or --all-prompts".into())
+            Err("give --prompt NAME (repeatable), --all-classes, --all-prompts or --click".into())
         }
     }
 }
 
 #[derive(Debug, Args)]
-struct RunArgs {
+pub(crate) struct RunArgs {
     /// The Gaussians the descriptors belong to (profuse.gaussians).
     #[arg(long)]
-    gaussians: PathBuf,
+    pub(crate) gaussians: PathBuf,
     /// The cameras of the views to render (profuse.cameras).
     #[arg(long)]
-    cameras: PathBuf,
+    pub(crate) cameras: PathBuf,
     #[command(flatten)]
-    descriptors: DescriptorArgs,
+    pub(crate) descriptors: DescriptorArgs,
     #[command(flatten)]
-    prompt: PromptArgs,
+    pub(crate) prompt: PromptArgs,
     /// Active set: Gaussians with score >= T. Required for cosine unless --top-frac is
     /// given (the paper tunes tau by a grid search); relevancy defaults to 0.5 (the
     /// prompt beats every canonical negative).
@@ -143,148 +140,91 @@ struct RunArgs {
         conflicts_with = "top_frac",
         allow_hyphen_values = true
     )]
-    threshold: Option<f32>,
+    pub(crate) threshold: Option<f32>,
     /// Active set: the best fraction F in [0, 1] of the Gaussians with a descriptor (ties
     /// to the lower id).
     #[arg(long, value_name = "F")]
-    top_frac: Option<f64>,
+    pub(crate) top_frac: Option<f64>,
     /// Silhouette threshold: a pixel is in the mask when the blending weights of the
     /// active Gaussians among its top-K contributors sum to >= G.
     #[arg(long, value_name = "G", default_value_t = DEFAULT_GAMMA)]
-    gamma: f32,
+    pub(crate) gamma: f32,
     /// Top-K contributors per pixel (1..=256).
     #[arg(long, default_value_t = DEFAULT_TOP_K as u16, value_parser = clap::value_parser!(u16).range(1..=256))]
-    k: u16,
+    pub(crate) k: u16,
     /// Views to write, as indices into the cameras file (comma-separated; default all).
     #[arg(long, value_delimiter = ',', conflicts_with = "views_from_labels")]
-    views: Vec<usize>,
+    pub(crate) views: Vec<usize>,
     /// Write only the views whose image stem has a label file DIR/<stem>.json (the
     /// LERF-style gt/label/ folder of the evaluation frames).
     #[arg(long, value_name = "DIR")]
-    views_from_labels: Option<PathBuf>,
+    pub(crate) views_from_labels: Option<PathBuf>,
     /// Render at this multiple of each camera's image size (intrinsics scaled to keep the
     /// field of view).
     #[arg(long, value_name = "S")]
-    scale: Option<f64>,
+    pub(crate) scale: Option<f64>,
     /// Output layout (see the command help).
     #[arg(long, value_enum, default_value = "prompt")]
-    layout: Layout,
+    pub(crate) layout: Layout,
     /// Do not write overlays (skips the colour render).
     #[arg(long)]
-    no_overlay: bool,
+    pub(crate) no_overlay: bool,
     /// Output directory: built next to it and swapped in whole (an existing one must be
     /// empty or an earlier query output, and is replaced).
     #[arg(long)]
-    out: PathBuf,
+    pub(crate) out: PathBuf,
+    #[command(flatten)]
+    pub(crate) click: ClickArgs,
+    /// Also write the selected Gaussians (of the one prompt or click queried) as an INRIA
+    /// 3DGS binary PLY that splat viewers open (scene-io's writer; written after the
+    /// other outputs).
+    #[arg(long, value_name = "OUT.ply")]
+    pub(crate) export_ply: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
-struct ScoresArgs {
+pub(crate) struct ClickArgs {
+    /// Query by click instead of text: the mask under pixel (X, Y) of view VIEW (X is the
+    /// column, Y the row, in pixels of that view's image, pixel (c, r) spanning [c, c+1) x
+    /// [r, r+1)) gives the query vector, scored and selected like a text embedding; the
+    /// outputs are named click_v<VIEW>_x<X>_y<Y>. Needs --masks (and --proposals unless
+    /// --click-by mask).
+    #[arg(
+        long,
+        num_args = 3,
+        value_names = ["VIEW", "X", "Y"],
+        allow_negative_numbers = true,
+        conflicts_with_all = ["prompt_names", "all_classes", "all_prompts"],
+        requires = "masks"
+    )]
+    pub(crate) click: Option<Vec<f64>>,
+    /// The masks file (profuse.masks) the click reads its mask from.
+    #[arg(long, value_name = "FILE")]
+    pub(crate) masks: Option<PathBuf>,
+    /// The proposals file (profuse.proposals, from warp-graph) of those masks.
+    #[arg(long, value_name = "FILE")]
+    pub(crate) proposals: Option<PathBuf>,
+    /// `proposal`: the query vector is the pooled descriptor of the clicked mask's 3D
+    /// Context Proposal (what fuse registered for its pixels; a mask in no proposal uses
+    /// its own feature); `mask`: the mask's own feature.
+    #[arg(long, value_enum, default_value = "proposal")]
+    pub(crate) click_by: ClickBy,
+}
+
+#[derive(Debug, Args)]
+pub(crate) struct ScoresArgs {
     #[command(flatten)]
-    descriptors: DescriptorArgs,
+    pub(crate) descriptors: DescriptorArgs,
     #[command(flatten)]
-    prompt: PromptArgs,
+    pub(crate) prompt: PromptArgs,
     /// Best Gaussians listed per prompt.
     #[arg(long, default_value_t = 10)]
-    top: usize,
+    pub(crate) top: usize,
     /// ADC shortlist re-ranked with the decoded descriptors (--pq with cosine only).
     #[arg(long, default_value_t = profuse_pq::DEFAULT_SHORTLIST)]
-    shortlist: usize,
+    pub(crate) shortlist: usize,
     /// Also write DIR/<prompt>.safetensors: a selection of every Gaussian with a
     /// descriptor and its score.
     #[arg(long, value_name = "DIR")]
-    out_dir: Option<PathBuf>,
-}
-
-fn main() -> ExitCode {
-    let cli = Cli::parse();
-    let quiet = cli.quiet;
-    run(|| match cli.command {
-        Command::Run(a) => run_query(a, quiet),
-        Command::Scores(a) => scores(a),
-        Command::Bench { params, threads } => {
-            init_threads(threads)?;
-            bench::run(&params)
-        }
-    })
-}
-
-fn run_query(a: RunArgs, quiet: bool) -> Result<Value, BoxError> {
-    let t0 = Instant::now();
-    let source = a.descriptors.source()?;
-    let inputs = Inputs::load(&a.gaussians, &a.cameras, &source, &a.descriptors.prompts)?;
-    let load_s = t0.elapsed().as_secs_f64();
-    let rule = match (a.threshold, a.top_frac) {
-        (Some(t), _) => Some(Rule::Threshold(t)),
-        (None, Some(f)) => Some(Rule::TopFraction(f)),
-        (None, None) => None,
-    };
-    let views = if let Some(dir) = &a.views_from_labels {
-        ViewSelection::FromLabels(dir.clone())
-    } else if a.views.is_empty() {
-        ViewSelection::All
-    } else {
-        ViewSelection::List(a.views.clone())
-    };
-    let options = QueryOptions {
-        prompts: a.prompt.selection()?,
-        score: a.prompt.score,
-        rule,
-        gamma: a.gamma,
-        k: usize::from(a.k),
-        scale: a.scale,
-        views,
-        layout: a.layout,
-        overlay: !a.no_overlay,
-    };
-    let plan = inputs.plan(&options)?;
-    let bar = progress_bar(chatty(quiet), plan.views.len() as u64, "query", "views");
-    bar.set_message(format!("{} prompts", plan.prompts.len()));
-    let report = plan.run_replacing(&inputs.gaussians, &a.out, &mut |_, _| bar.inc(1));
-    bar.finish_and_clear();
-    let report = report?;
-    let mut value = serde_json::to_value(&report)?;
-    value["out"] = json!(a.out.to_string_lossy());
-    value["gaussians"] = json!(inputs.gaussians.len());
-    value["descriptors"] = json!(source.path().to_string_lossy());
-    value["load_s"] = json!(load_s);
-    value["total_s"] = json!(t0.elapsed().as_secs_f64());
-    Ok(value)
-}
-
-fn scores(a: ScoresArgs) -> Result<Value, BoxError> {
-    let source = a.descriptors.source()?;
-    let inputs = ScoreInputs::load(&source, &a.descriptors.prompts)?;
-    let kind: ScoreKind = a.prompt.score;
-    let which = inputs.resolve_prompts(&a.prompt.selection()?)?;
-    let t0 = Instant::now();
-    let all = inputs.scores(&which, kind)?;
-    let score_s = t0.elapsed().as_secs_f64();
-    if let Some(dir) = &a.out_dir {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| format!("{}: cannot create directory: {e}", dir.display()))?;
-    }
-    let mut prompts = Vec::new();
-    for (&q, s) in which.iter().zip(&all) {
-        let stats = stats::prompt_scores(&inputs, q, s, kind, a.top, a.shortlist)?;
-        let mut entry = serde_json::to_value(&stats)?;
-        if let Some(dir) = &a.out_dir {
-            let name = profuse_query::file_name_of(&stats.prompt, Layout::Prompt)?;
-            let path = dir.join(format!("{name}.safetensors"));
-            stats::every_valid_selection(&stats.prompt, kind, s)?.write(&path)?;
-            entry["file"] = json!(path.to_string_lossy());
-        }
-        prompts.push(entry);
-    }
-    Ok(json!({
-        "score": kind,
-        "descriptors": source.path().to_string_lossy(),
-        "gaussians": inputs.descriptors().len(),
-        "top_method": match (&source, kind) {
-            (DescriptorPath::Pq(_), ScoreKind::Cosine) => "adc_shortlist_exact_rerank",
-            _ => "full_scan",
-        },
-        "prompts": prompts,
-        "score_s": score_s,
-    }))
+    pub(crate) out_dir: Option<PathBuf>,
 }
