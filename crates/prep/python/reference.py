@@ -1,8 +1,9 @@
 """Independent numpy + onnxruntime reference for crates/prep's agreement tests.
 
-    reference.py sam ENCODER DECODER RGB.bin W H OUT_H OUT_W X,Y [X,Y ...] OUTDIR
+    reference.py sam ENCODER DECODER RGB.bin W H OUT_H OUT_W PROMPT [PROMPT ...] OUTDIR
         SAM preprocessing (numpy bilinear, half-pixel centres, longest side 1024, pad,
-        mean/std), the encoder, and one decoder call per include point. Writes
+        mean/std), the encoder, and one decoder call per prompt (X,Y: a click;
+        X,Y,X0,Y0,X1,Y1: a click with a box). Writes
         input.f32, embedding.f32, masks_<k>.f32, iou.f32 into OUTDIR.
     reference.py pool EMBEDDING.f32 W H LABELS.u16 GH GW MASKS OUT.f32
         The mask descriptors: mask-pixel-count-weighted mean of the 64x64x256 embedding
@@ -63,12 +64,19 @@ def sam(args):
     d = ort.InferenceSession(dec, opts)
     ious = []
     for k, p in enumerate(points):
-        px, py = (float(v) for v in p.split(","))
-        coords = np.array([[[px * nw / w, py * nh / h], [0.0, 0.0]]], np.float32)
+        v = [float(t) for t in p.split(",")]
+        sx, sy = nw / w, nh / h
+        if len(v) == 2:
+            coords = np.array([[[v[0] * sx, v[1] * sy], [0.0, 0.0]]], np.float32)
+            labels = np.array([[1, -1]], np.float32)
+        else:  # a click with a box: corners labelled 2 and 3, no padding point
+            coords = np.array([[[v[0] * sx, v[1] * sy], [v[2] * sx, v[3] * sy],
+                                [v[4] * sx, v[5] * sy]]], np.float32)
+            labels = np.array([[1, 2, 3]], np.float32)
         masks, iou, _ = d.run(None, {
             "image_embeddings": emb,
             "point_coords": coords,
-            "point_labels": np.array([[1, -1]], np.float32),
+            "point_labels": labels,
             "mask_input": np.zeros((1, 1, 256, 256), np.float32),
             "has_mask_input": np.zeros(1, np.float32),
             "orig_im_size": np.array([oh, ow], np.float32),

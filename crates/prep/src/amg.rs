@@ -14,7 +14,7 @@ use serde::Serialize;
 
 use crate::error::Result;
 use crate::rle::{connected_components, Rle};
-use crate::sam::{Embedding, Sam};
+use crate::sam::{Embedding, Prompt, Sam};
 
 /// Parameters of the automatic mask generator (defaults: SAM's, with a small-region area).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -34,7 +34,27 @@ pub struct AmgParams {
     /// Holes and islands smaller than this many mask-grid pixels are removed (SAM's
     /// `min_mask_region_area`; SAM's default 0 turns it off, ours is 100).
     pub min_region_area: usize,
+    /// Extra box prompts (not in SAM's generator): for each fraction s here, every grid
+    /// point also prompts with a square box of side s times the image's shorter side
+    /// centred on it (clipped to the image). Empty by default.
+    pub box_scales: [f32; MAX_BOX_SCALES],
 }
+
+/// The box scales of [`AmgParams`] from a list: at most [`MAX_BOX_SCALES`], each > 0.
+pub fn box_scales(list: &[f32]) -> Result<[f32; MAX_BOX_SCALES]> {
+    if list.len() > MAX_BOX_SCALES || list.iter().any(|s| !(*s > 0.0 && s.is_finite())) {
+        return Err(crate::error::input(
+            "box scales",
+            format!("{list:?}: at most {MAX_BOX_SCALES} fractions, each finite and > 0"),
+        ));
+    }
+    let mut out = [0.0; MAX_BOX_SCALES];
+    out[..list.len()].copy_from_slice(list);
+    Ok(out)
+}
+
+/// Most box scales ([`AmgParams::box_scales`]; unused entries are 0).
+pub const MAX_BOX_SCALES: usize = 4;
 
 impl Default for AmgParams {
     fn default() -> Self {
@@ -46,6 +66,7 @@ impl Default for AmgParams {
             mask_threshold: 0.0,
             box_nms_thresh: 0.7,
             min_region_area: 100,
+            box_scales: [0.0; MAX_BOX_SCALES],
         }
     }
 }
@@ -63,7 +84,7 @@ pub struct SamMask {
     pub bbox: [usize; 4],
     /// Pixel count.
     pub area: usize,
-    /// Index of the grid point that prompted it.
+    /// Index of the prompt (grid point first, then box prompts) that gave it.
     pub point: usize,
 }
 
@@ -94,6 +115,27 @@ pub fn point_grid(n: usize, width: usize, height: usize) -> Vec<(f64, f64)> {
         }
     }
     pts
+}
+
+/// The prompts of a view: the grid points, then for each box scale the grid points with
+/// their boxes.
+pub fn prompts(p: &AmgParams, width: usize, height: usize) -> Vec<Prompt> {
+    let grid = point_grid(p.points_per_side, width, height);
+    let mut out: Vec<Prompt> = grid.iter().map(|&pt| pt.into()).collect();
+    let short = width.min(height) as f64;
+    for &s in p.box_scales.iter().filter(|s| **s > 0.0) {
+        let half = f64::from(s) * short / 2.0;
+        out.extend(grid.iter().map(|&(x, y)| Prompt {
+            point: (x, y),
+            bbox: Some([
+                (x - half).max(0.0),
+                (y - half).max(0.0),
+                (x + half).min(width as f64),
+                (y + half).min(height as f64),
+            ]),
+        }));
+    }
+    out
 }
 
 /// Stability score of mask logits: |l > t + o| / |l > t − o| (0 for an empty union).
@@ -157,7 +199,7 @@ pub fn generate(
     grid: (usize, usize),
     p: &AmgParams,
 ) -> Result<(Vec<SamMask>, AmgCounts)> {
-    let points = point_grid(p.points_per_side, emb.image_width, emb.image_height);
+    let points = prompts(p, emb.image_width, emb.image_height);
     let (h, w) = grid;
     let keep = |i: usize, logits: &[f32], iou: f32| -> Option<(bool, Option<SamMask>)> {
         if iou <= p.pred_iou_thresh {

@@ -27,7 +27,7 @@ pub const IMAGE_SIZE: usize = 224;
 /// CLIP's per-channel mean on the 0..1 scale.
 pub const CLIP_MEAN: [f32; 3] = [0.481_454_66, 0.457_827_5, 0.408_210_73];
 /// CLIP's per-channel standard deviation on the 0..1 scale.
-pub const CLIP_STD: [f32; 3] = [0.268_629_54, 0.261_302_58, 0.275_777_11];
+pub const CLIP_STD: [f32; 3] = [0.268_629_54, 0.261_302_6, 0.275_777_1];
 
 /// CLIP token ids of `text`: start-of-text, the BPE tokens (truncated to fit), end-of-text,
 /// zero padding to `CONTEXT` (OpenAI's `clip.tokenize`).

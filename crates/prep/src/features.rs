@@ -41,7 +41,7 @@ fn check_views(masks: &Masks, cameras: &Cameras) -> Result<()> {
 }
 
 /// One view's labels as u16 (`u16::MAX` = none).
-fn view_labels(masks: &Masks, v: usize) -> Vec<u16> {
+pub fn view_labels(masks: &Masks, v: usize) -> Vec<u16> {
     let plane = masks.width * masks.height;
     (v * plane..(v + 1) * plane)
         .map(|i| {

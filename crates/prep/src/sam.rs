@@ -60,6 +60,13 @@ pub struct Embedding {
     pub image_height: usize,
 }
 
+/// What [`Sam::decode_points`] keeps of a decoded prompt: (point index, mask logits,
+/// predicted IoU) to a value or nothing.
+pub type KeepFn<'a, T> = dyn Fn(usize, &[f32], f32) -> Option<T> + Sync + 'a;
+
+/// Results of one decoder worker, tagged with their point index.
+type Indexed<T> = Vec<(usize, Option<T>)>;
+
 /// A loaded encoder and a pool of decoder sessions (one per worker thread: a session runs
 /// one call at a time).
 #[derive(Debug)]
@@ -163,23 +170,23 @@ impl Sam {
         self.decoders.len()
     }
 
-    /// Decodes one include-point prompt per entry of `points` (image pixels, x right, y
-    /// down) at mask size `out` = (height, width) and hands each result (point index, mask
+    /// Decodes one prompt per entry of `points` (image pixels, x right, y down) at mask
+    /// size `out` = (height, width) and hands each result (prompt index, mask
     /// logits `out.0 * out.1` row-major, predicted IoU) to `keep`; returns what `keep`
     /// returned, in point order whatever the number of workers.
     pub fn decode_points<T: Send>(
         &mut self,
         emb: &Embedding,
-        points: &[(f64, f64)],
+        points: &[Prompt],
         out: (usize, usize),
-        keep: &(dyn Fn(usize, &[f32], f32) -> Option<T> + Sync),
+        keep: &KeepFn<'_, T>,
     ) -> Result<Vec<Option<T>>> {
         let n = self.decoders.len();
         if n == 0 {
             return Err(crate::error::input("SAM", "no decoder was opened"));
         }
         let model = &self.decoder_path;
-        let results: Vec<Result<Vec<(usize, Option<T>)>>> = std::thread::scope(|s| {
+        let results: Vec<Result<Indexed<T>>> = std::thread::scope(|s| {
             let handles: Vec<_> = self
                 .decoders
                 .iter_mut()
@@ -212,13 +219,29 @@ impl Sam {
     }
 }
 
-/// One decoder call: the include point plus SAM's padding point (0, 0) with label −1, no
-/// mask input, output at `out` = (height, width).
+/// A prompt in image pixels: an include point, optionally with a box (x0, y0, x1, y1).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Prompt {
+    /// The include point.
+    pub point: (f64, f64),
+    /// An optional box around it.
+    pub bbox: Option<[f64; 4]>,
+}
+
+impl From<(f64, f64)> for Prompt {
+    fn from(point: (f64, f64)) -> Prompt {
+        Prompt { point, bbox: None }
+    }
+}
+
+/// One decoder call: the include point plus SAM's padding point (0, 0) with label −1 (or,
+/// with a box, the point and the box corners with labels 2 and 3, as SAM's ONNX example
+/// does), no mask input, output at `out` = (height, width).
 pub fn decode_one(
     session: &mut Session,
     model: &Path,
     emb: &Embedding,
-    point: (f64, f64),
+    prompt: Prompt,
     out: (usize, usize),
 ) -> Result<(Vec<f32>, f32)> {
     let fail = |action, e: ort::Error| PrepError::Onnx {
@@ -229,7 +252,16 @@ pub fn decode_one(
     let (nw, nh) = resized_size(emb.image_width, emb.image_height);
     let sx = nw as f64 / emb.image_width as f64;
     let sy = nh as f64 / emb.image_height as f64;
-    let coords = vec![(point.0 * sx) as f32, (point.1 * sy) as f32, 0.0, 0.0];
+    let (x, y) = prompt.point;
+    let (coords, labels) = match prompt.bbox {
+        None => (vec![x * sx, y * sy, 0.0, 0.0], vec![1.0f32, -1.0]),
+        Some(b) => (
+            vec![x * sx, y * sy, b[0] * sx, b[1] * sy, b[2] * sx, b[3] * sy],
+            vec![1.0f32, 2.0, 3.0],
+        ),
+    };
+    let n = labels.len();
+    let coords: Vec<f32> = coords.into_iter().map(|c| c as f32).collect();
     let side = EMBED_SIDE;
     let t = |r: ort::Result<Tensor<f32>>| r.map_err(|e| fail("cannot make an input tensor", e));
     let embedding =
@@ -237,8 +269,8 @@ pub fn decode_one(
             .map_err(|e| fail("cannot make an input tensor", e))?;
     let inputs = ort::inputs![
         "image_embeddings" => embedding,
-        "point_coords" => t(Tensor::from_array(([1usize, 2, 2], coords)))?,
-        "point_labels" => t(Tensor::from_array(([1usize, 2], vec![1.0f32, -1.0])))?,
+        "point_coords" => t(Tensor::from_array(([1usize, n, 2], coords)))?,
+        "point_labels" => t(Tensor::from_array(([1usize, n], labels)))?,
         "mask_input" => t(Tensor::from_array(([1usize, 1, 256, 256], vec![0f32; 256 * 256])))?,
         "has_mask_input" => t(Tensor::from_array(([1usize], vec![0f32])))?,
         "orig_im_size" => t(Tensor::from_array(([2usize], vec![out.0 as f32, out.1 as f32])))?,

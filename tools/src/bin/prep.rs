@@ -10,9 +10,9 @@ use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
 use profuse_formats::{Cameras, FileKind, Masks};
-use profuse_prep::amg::AmgParams;
+use profuse_prep::amg::{box_scales, AmgParams};
 use profuse_prep::clip::{make_prompts, ClipModel};
-use profuse_prep::features::{clip_features, sam_features};
+use profuse_prep::features::{clip_features, sam_features, view_labels};
 use profuse_prep::image::load_rgb;
 use profuse_prep::masks::{run_masks, MasksJob};
 use profuse_prep::preview::overlay;
@@ -110,6 +110,10 @@ struct MasksArgs {
     /// Holes and islands under this many label-map pixels are removed (0: off).
     #[arg(long, default_value_t = 100)]
     min_region_area: usize,
+    /// Extra box prompts (not in SAM's generator; up to 4): each grid point also prompts
+    /// with a square box of this fraction of the image's shorter side, e.g. 0.25,0.5.
+    #[arg(long, value_delimiter = ',')]
+    box_scales: Vec<f32>,
     /// Longest side of the label maps, i.e. the decoder output size (never above the
     /// image's).
     #[arg(long, default_value_t = 512)]
@@ -194,6 +198,7 @@ fn masks(
     if a.points_per_side == 0 || a.mask_size == 0 {
         return Err("--points-per-side and --mask-size must be at least 1".into());
     }
+    let box_scales = box_scales(&a.box_scales)?;
     let cameras = Cameras::read(&a.scene.cameras)?;
     let params = AmgParams {
         points_per_side: a.points_per_side,
@@ -203,6 +208,7 @@ fn masks(
         mask_threshold: 0.0,
         box_nms_thresh: a.box_nms_thresh,
         min_region_area: a.min_region_area,
+        box_scales,
     };
     let mut sam = Sam::open(env()?, &a.encoder, &a.decoder, threads)?;
     let job = MasksJob {
@@ -275,12 +281,9 @@ fn write_previews(
     images: &Path,
 ) -> Result<(), BoxError> {
     std::fs::create_dir_all(dir)?;
-    let plane = masks.width * masks.height;
     for v in (0..masks.num_views()).filter(|v| masks.masks_in_view(*v) > 0) {
         let img = load_rgb(&images.join(&cameras.image_names[v]))?;
-        let labels: Vec<u16> = (v * plane..(v + 1) * plane)
-            .map(|i| masks.labels.get(i).map_or(u16::MAX, |l| l as u16))
-            .collect();
+        let labels = view_labels(masks, v);
         let rgb = overlay(&img, &labels, (masks.height, masks.width));
         let path = dir.join(format!("view_{v}.png"));
         write_png(
