@@ -536,6 +536,26 @@ mod algorithms {
     }
 
     #[test]
+    fn box_prompts_follow_the_grid_and_are_clipped() {
+        use profuse_prep::amg::{box_scales, prompts, AmgParams};
+        let p = AmgParams {
+            points_per_side: 2,
+            box_scales: box_scales(&[0.5]).unwrap(),
+            ..AmgParams::default()
+        };
+        let all = prompts(&p, 100, 50);
+        assert_eq!(all.len(), 8);
+        assert!(all[..4].iter().all(|q| q.bbox.is_none()));
+        // Side 0.5 x 50 = 25 centred on (25, 12.5): clipped at y = 0.
+        assert_eq!(all[4].point, (25.0, 12.5));
+        assert_eq!(all[4].bbox, Some([12.5, 0.0, 37.5, 25.0]));
+        assert_eq!(all[7].bbox, Some([62.5, 25.0, 87.5, 50.0]));
+        assert!(box_scales(&[0.1, 0.2, 0.3, 0.4, 0.5]).is_err());
+        assert!(box_scales(&[0.0]).is_err());
+        assert!(box_scales(&[f32::NAN]).is_err());
+    }
+
+    #[test]
     fn point_grid_is_sams() {
         let g = point_grid(2, 100, 50);
         assert_eq!(
@@ -614,7 +634,7 @@ fn masks_and_features_jobs_on_fox_views() {
         profuse_prep::features::clip_features(&mut clip, &back, &cameras, &fox.images, &|_, _| {})
             .unwrap();
     assert_eq!((r.masks, r.dim), (masks.num_masks(), 8));
-    profuse_formats::FileKind::write(&with_clip, &dir.path().join("clip.safetensors")).unwrap();
+    profuse_formats::FileKind::write(&with_clip, dir.path().join("clip.safetensors")).unwrap();
     assert_eq!(
         with_clip.extra.get("feature").map(String::as_str),
         Some("clip_image")
