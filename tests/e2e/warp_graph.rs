@@ -262,6 +262,24 @@ fn warps_from_depth_feed_run_and_are_deterministic() {
     let m4 = dir.path().join("m4.safetensors");
     super::assert_succeeded(&warps(&m4, &["--stride", "2", "--nearest", "2"], "4"));
     assert_eq!(std::fs::read(&m1).unwrap(), std::fs::read(&m4).unwrap());
+    // `prep warps` is the same command (issue 17's name for it).
+    let via_prep = dir.path().join("prep.safetensors");
+    let o = Command::new(env!("CARGO_BIN_EXE_prep"))
+        .arg("warps")
+        .arg("--gaussians")
+        .arg(scene.join("gt/gaussians.safetensors"))
+        .arg("--cameras")
+        .arg(scene.join("cameras.safetensors"))
+        .arg("--out")
+        .arg(&via_prep)
+        .args(["--stride", "2", "--nearest", "2", "--quiet"])
+        .output()
+        .unwrap();
+    super::assert_succeeded(&o);
+    assert_eq!(
+        std::fs::read(&m1).unwrap(),
+        std::fs::read(&via_prep).unwrap()
+    );
     // The proposals from these warps.
     std::fs::copy(&m1, scene.join("matches.safetensors")).unwrap();
     let proposals = dir.path().join("p.safetensors");

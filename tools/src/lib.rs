@@ -3,6 +3,7 @@
 
 pub mod scene;
 pub mod stages;
+pub mod warps;
 
 use std::error::Error;
 use std::io::{IsTerminal, Write};

@@ -12,8 +12,8 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 use profuse_bench::warp_graph as bench;
 use profuse_tools::{chatty, init_threads, progress_bar, run};
-use warp_graph::job::{self, Job, WarpsJob};
-use warp_graph::{DepthWarpParams, FlatParams, Pairs, Params};
+use warp_graph::job::{self, Job};
+use warp_graph::{FlatParams, Params};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -62,37 +62,7 @@ enum Command {
     /// where the depths agree (certainty 1 − (e / depth_tol)², e the relative depth
     /// disagreement in view j; occluded cells get 0). Writes a matches file (SPEC.md §4.4,
     /// pixel coordinates) that `warp-graph run --matches` reads.
-    Warps {
-        /// Gaussians file (profuse.gaussians, e.g. from gs-init).
-        #[arg(long)]
-        gaussians: PathBuf,
-        /// Cameras file (profuse.cameras).
-        #[arg(long)]
-        cameras: PathBuf,
-        /// The matches file to write.
-        #[arg(long)]
-        out: PathBuf,
-        /// Ordered pairs I-J, comma-separated (default: each view with its --nearest views
-        /// by camera centre, both directions).
-        #[arg(long, value_delimiter = ',', value_parser = parse_pair, conflicts_with = "nearest")]
-        pairs: Vec<[u32; 2]>,
-        /// Views paired with each view, nearest camera centres first.
-        #[arg(long, value_name = "K", default_value_t = 4)]
-        nearest: usize,
-        /// Image pixels per grid cell along each axis.
-        #[arg(long, value_name = "S", default_value_t = 4)]
-        stride: usize,
-        /// Relative depth tolerance: certainty falls to 0 at this disagreement.
-        #[arg(long, value_name = "T", default_value_t = 0.05)]
-        depth_tol: f64,
-        /// Accumulated alpha below which a rendered pixel has no depth.
-        #[arg(long, value_name = "A", default_value_t = 0.5)]
-        min_alpha: f32,
-        /// Reject cells on a depth edge: a 4-neighbour's depth differs by more than E
-        /// relative (default off: more precise warps, but fewer links in warp-graph).
-        #[arg(long, value_name = "E")]
-        edge_tol: Option<f64>,
-    },
+    Warps(profuse_tools::warps::WarpsArgs),
     /// Time the association on synthetic Voronoi label maps with exact shift warps and print
     /// ordered pairs per second and peak memory as one JSON object.
     Bench {
@@ -127,37 +97,7 @@ fn main() -> ExitCode {
             let report = with_bar(show, |p| job::run(&job, &Params::from(params), p))?;
             Ok(serde_json::to_value(report)?)
         }
-        Command::Warps {
-            gaussians,
-            cameras,
-            out,
-            pairs,
-            nearest,
-            stride,
-            depth_tol,
-            min_alpha,
-            edge_tol,
-        } => {
-            profuse_tools::check_outputs([out.as_path()])?;
-            let params = DepthWarpParams {
-                stride,
-                depth_tol,
-                min_alpha,
-                edge_tol: edge_tol.unwrap_or(warp_graph::DEFAULT_EDGE_TOL),
-                pairs: if pairs.is_empty() {
-                    Pairs::Nearest(nearest)
-                } else {
-                    Pairs::Explicit(pairs)
-                },
-            };
-            let job = WarpsJob {
-                gaussians,
-                cameras,
-                out,
-            };
-            let report = with_bar(show, |p| job::run_warps(&job, &params, p))?;
-            Ok(serde_json::to_value(report)?)
-        }
+        Command::Warps(a) => profuse_tools::warps::run(a, show),
         Command::Bench { params, threads } => {
             init_threads(threads)?;
             with_bar(show, |p| bench::run(&params, p))
@@ -174,17 +114,4 @@ fn with_bar<T>(show: bool, f: impl FnOnce(&(dyn Fn(usize, usize) + Sync)) -> T) 
     });
     bar.finish_and_clear();
     result
-}
-
-/// `I-J` → [I, J].
-fn parse_pair(s: &str) -> Result<[u32; 2], String> {
-    let (i, j) = s
-        .split_once('-')
-        .ok_or_else(|| format!("{s:?}: expected a pair I-J of view indices"))?;
-    let view = |t: &str| {
-        t.trim()
-            .parse::<u32>()
-            .map_err(|e| format!("{s:?}: {t:?} is not a view index ({e})"))
-    };
-    Ok([view(i)?, view(j)?])
 }

@@ -5,10 +5,10 @@
 //! goes to stdout; progress goes to stderr when it is a terminal and `--quiet` is not given.
 //! On failure the error goes to stderr, the exit code is 1, and nothing is written.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::ExitCode;
 
-use clap::{Args, Parser, Subcommand};
+use clap::Parser;
 use profuse_formats::{Cameras, FileKind, Masks};
 use profuse_prep::amg::{box_scales, AmgParams};
 use profuse_prep::clip::{make_prompts, ClipModel};
@@ -20,141 +20,8 @@ use profuse_prep::runtime::{environment, find_library, Environment};
 use profuse_prep::sam::Sam;
 use profuse_tools::{chatty, check_outputs, progress_bar, run, write_png, BoxError};
 
-#[derive(Debug, Parser)]
-#[command(
-    name = "prep",
-    version,
-    about = "Masks, mask features and prompts from real SAM / CLIP ONNX models",
-    long_about = "Makes the files the semantic half reads from a user's photos: `masks` runs SAM's \
-                  automatic mask generator on every view and writes non-overlapping label maps \
-                  (with SAM-embedding mask descriptors), `features` replaces the descriptors \
-                  (SAM embedding or CLIP image crops), `prompts` embeds texts with a CLIP text \
-                  encoder. Models run through ONNX Runtime, loaded from --ort-lib, \
-                  ORT_DYLIB_PATH or the onnxruntime Python package. Prints one JSON report."
-)]
-struct Cli {
-    /// Do not print progress on stderr.
-    #[arg(long, global = true)]
-    quiet: bool,
-    /// The ONNX Runtime shared library (libonnxruntime.so, >= 1.31). Default: $ORT_DYLIB_PATH,
-    /// else the one inside the `onnxruntime` Python package (asked from python3).
-    #[arg(long, global = true)]
-    ort_lib: Option<PathBuf>,
-    /// Inference threads (encoder intra-op threads and parallel decoder sessions). Default:
-    /// the core count. Results do not depend on it.
-    #[arg(long, global = true)]
-    threads: Option<usize>,
-    #[command(subcommand)]
-    command: Command,
-}
-
-/// The scene inputs shared by the subcommands.
-#[derive(Debug, Args)]
-struct Scene {
-    /// Cameras file (profuse.cameras): image names and sizes.
-    #[arg(long)]
-    cameras: PathBuf,
-    /// Directory the cameras' image names are relative to (the scene directory).
-    #[arg(long)]
-    images: PathBuf,
-}
-
-#[derive(Debug, Subcommand)]
-enum Command {
-    /// SAM automatic masks of every view, flattened into label maps (larger masks first,
-    /// smaller on top), with SAM-embedding descriptors; writes a masks file.
-    Masks(MasksArgs),
-    /// Replace the descriptor of every mask of a masks file; writes a masks file.
-    Features(FeaturesArgs),
-    /// Embed text prompts with a CLIP text encoder (CLIP BPE, context 77); the LERF
-    /// canonical negatives (object, things, stuff, texture) are added; writes a prompts file.
-    Prompts {
-        /// CLIP text encoder (ONNX: `input_ids` i64 [N,77] (+ `attention_mask`) ->
-        /// `text_embeds` [N,D]).
-        #[arg(long)]
-        clip_text: PathBuf,
-        /// The prompt texts.
-        #[arg(required = true)]
-        texts: Vec<String>,
-        /// The prompts file to write (profuse.prompts).
-        #[arg(long)]
-        out: PathBuf,
-    },
-}
-
-#[derive(Debug, Args)]
-struct MasksArgs {
-    /// SAM image encoder (ONNX: input [1,3,1024,1024], output [1,256,64,64]).
-    #[arg(long)]
-    encoder: PathBuf,
-    /// SAM prompt decoder (ONNX, the standard SAM export interface).
-    #[arg(long)]
-    decoder: PathBuf,
-    #[command(flatten)]
-    scene: Scene,
-    /// Points per side of the prompt grid (SAM's default 32: 1024 decoder calls a view).
-    #[arg(long, default_value_t = 32)]
-    points_per_side: usize,
-    /// Keep masks whose predicted IoU is above this.
-    #[arg(long, default_value_t = 0.88)]
-    pred_iou_thresh: f32,
-    /// Keep masks whose stability score is at least this.
-    #[arg(long, default_value_t = 0.95)]
-    stability_thresh: f32,
-    /// Logit offset of the stability score.
-    #[arg(long, default_value_t = 1.0)]
-    stability_offset: f32,
-    /// Box IoU above which the lower-scored of two masks is suppressed.
-    #[arg(long, default_value_t = 0.7)]
-    box_nms_thresh: f32,
-    /// Holes and islands under this many label-map pixels are removed (0: off).
-    #[arg(long, default_value_t = 100)]
-    min_region_area: usize,
-    /// Extra box prompts (not in SAM's generator; up to 4): each grid point also prompts
-    /// with a square box of this fraction of the image's shorter side, e.g. 0.25,0.5.
-    #[arg(long, value_delimiter = ',')]
-    box_scales: Vec<f32>,
-    /// Longest side of the label maps, i.e. the decoder output size (never above the
-    /// image's).
-    #[arg(long, default_value_t = 512)]
-    mask_size: usize,
-    /// Views to segment (comma separated, 0-based); the others get no masks, e.g. views
-    /// held out of the pipeline. Default: all.
-    #[arg(long, value_delimiter = ',')]
-    views: Option<Vec<usize>>,
-    /// The masks file to write (profuse.masks).
-    #[arg(long)]
-    out: PathBuf,
-    /// Also write `view_<v>.png` overlays of each segmented view's label map here.
-    #[arg(long)]
-    preview: Option<PathBuf>,
-}
-
-#[derive(Debug, Args)]
-struct FeaturesArgs {
-    /// The masks file whose descriptors are replaced.
-    #[arg(long)]
-    masks: PathBuf,
-    #[command(flatten)]
-    scene: Scene,
-    /// CLIP image encoder (ONNX: `pixel_values` [N,3,224,224] -> `image_embeds` [N,D]):
-    /// each mask's box crop, background black, padded square, 224 px, CLIP mean/std.
-    #[arg(
-        long,
-        conflicts_with = "sam_embedding",
-        required_unless_present = "sam_embedding"
-    )]
-    clip_image: Option<PathBuf>,
-    /// Pool the SAM image embedding over each mask (needs --encoder; 256-d).
-    #[arg(long, requires = "encoder")]
-    sam_embedding: bool,
-    /// SAM image encoder for --sam-embedding.
-    #[arg(long)]
-    encoder: Option<PathBuf>,
-    /// The masks file to write.
-    #[arg(long)]
-    out: PathBuf,
-}
+mod args;
+use args::{Cli, Command, FeaturesArgs, MasksArgs};
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
@@ -174,6 +41,7 @@ fn main() -> ExitCode {
             texts,
             out,
         } => prompts(env()?, &clip_text, &texts, &out, threads),
+        Command::Warps(a) => profuse_tools::warps::run(a, show),
     })
 }
 
