@@ -9,6 +9,15 @@ pub enum InitError {
     /// A file could not be read, failed validation, or could not be written.
     #[error(transparent)]
     Format(#[from] FormatError),
+    /// The folder of the output file cannot be created.
+    #[error("{path}: cannot create the output folder")]
+    OutputFolder {
+        /// The folder.
+        path: String,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
     /// A match pair names a view the cameras file does not have.
     #[error("{matches}: tensor `pairs` row {pair} names view {view}, but {cameras} has {views} views (ids 0..{views})")]
     PairOutOfRange {

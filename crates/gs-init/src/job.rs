@@ -47,8 +47,9 @@ pub struct JobReport {
     pub seconds: f64,
 }
 
-/// Runs a job; `progress` gets (reference views done, reference views). An empty result
-/// (no point survived the gates) is written too, and reported with `kept == 0`.
+/// Runs a job; `progress` gets (reference views done, reference views). The output's
+/// folder is created when missing. An empty result (no point survived the gates) is
+/// written too, and reported with `kept == 0`.
 pub fn run(
     job: &Job,
     params: &Params,
@@ -56,6 +57,13 @@ pub fn run(
 ) -> Result<JobReport> {
     let start = Instant::now();
     let (gaussians, report) = initialise_files(&job.inputs, params, progress)?;
+    // Only now: a failed run leaves nothing behind, not even a folder.
+    if let Some(parent) = job.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|source| crate::InitError::OutputFolder {
+            path: parent.display().to_string(),
+            source,
+        })?;
+    }
     gaussians.write(&job.out)?;
     Ok(JobReport {
         report,

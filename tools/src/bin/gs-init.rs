@@ -111,10 +111,6 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             };
             let params = Params::from(params);
             profuse_tools::check_outputs([out.as_path()])?;
-            if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
-                std::fs::create_dir_all(parent)
-                    .map_err(|e| format!("cannot create {}: {e}", parent.display()))?;
-            }
             let job = Job { inputs, out };
             let report = with_progress(chatty(quiet), |p| job::run(&job, &params, p))?;
             if report.report.kept == 0 {
