@@ -33,17 +33,21 @@ fn blur(src: &[f64], w: usize, h: usize, out: &mut Vec<f64>) {
     let k = kernel();
     let r = WINDOW / 2;
     let mut tmp = vec![0.0; w * h];
+    // Each pass adds tap j to every output it reaches (ascending j: a fixed order per
+    // output), as whole-row multiply-adds that vectorise.
     tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let s = &src[y * w..(y + 1) * w];
-        for (x, o) in row.iter_mut().enumerate() {
-            let mut acc = 0.0;
-            for (j, kv) in k.iter().enumerate() {
-                let xx = x as isize + j as isize - r as isize;
-                if xx >= 0 && (xx as usize) < w {
-                    acc += kv * s[xx as usize];
-                }
+        for (j, kv) in k.iter().enumerate() {
+            // Output x reads s[x + j − r]: x in [r − j, w + r − j) ∩ [0, w).
+            let lo = r.saturating_sub(j);
+            let hi = (w + r).saturating_sub(j).min(w);
+            if lo >= hi {
+                continue;
             }
-            *o = acc;
+            let src_lo = lo + j - r;
+            for (o, v) in row[lo..hi].iter_mut().zip(&s[src_lo..src_lo + (hi - lo)]) {
+                *o += kv * v;
+            }
         }
     });
     out.clear();

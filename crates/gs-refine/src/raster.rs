@@ -30,6 +30,11 @@ struct Splat {
     id: u32,
     /// Inclusive pixel rectangle outside which alpha < 1/255: x0, x1, y0, y1.
     rect: [u32; 4],
+    /// splat-raster's per-row span terms: 2 a tau, a c − b², 1 / a (0: no spans, visit
+    /// whole rectangle rows).
+    two_a_tau: f32,
+    det: f32,
+    inv_a: f32,
 }
 
 /// One view's forward state, reused between iterations (buffers keep their capacity).
@@ -119,7 +124,16 @@ fn to_splat(pr: &project::Proj, i: usize, width: u32, height: u32) -> Option<Spl
     };
     let [x0, x1] = span(u, ex, pr.tiles[0], pr.tiles[1], width)?;
     let [y0, y1] = span(v, ey, pr.tiles[2], pr.tiles[3], height)?;
+    let [a, b, c] = conic;
+    let det = a * c - b * b;
+    let two_a_tau = 2.0 * a * tau as f32;
+    let inv_a = 1.0 / a;
+    let spans =
+        a > 0.0 && det > 0.0 && det.is_finite() && two_a_tau.is_finite() && inv_a.is_finite();
     Some(Splat {
+        two_a_tau,
+        det,
+        inv_a: if spans { inv_a } else { 0.0 },
         x,
         y,
         conic,
@@ -177,11 +191,6 @@ fn alpha_at(sp: &Splat, px: f32, py: f32) -> Option<(f32, f32, f32, f32)> {
     (power <= 0.0 && alpha >= ALPHA_MIN).then_some((alpha, g, dx, dy))
 }
 
-#[inline(always)]
-fn inside(sp: &Splat, x: u32, y: u32) -> bool {
-    x >= sp.rect[0] && x <= sp.rect[1] && y >= sp.rect[2] && y <= sp.rect[3]
-}
-
 /// Renders `cam` into `state`: colour over background `bg`, and what [`backward`] needs.
 pub fn forward(p: &Params, cam: &ViewCamera, bg: [f32; 3], state: &mut ViewState) {
     let (w, h) = (cam.width as usize, cam.height as usize);
@@ -207,53 +216,132 @@ pub fn forward(p: &Params, cam: &ViewCamera, bg: [f32; 3], state: &mut ViewState
         .zip(state.color.par_chunks_mut(rows * 3))
         .enumerate()
         .for_each(|(ty, ((tf, la), co))| {
-            for (i, ((t_out, l_out), c_out)) in tf
-                .iter_mut()
-                .zip(la.iter_mut())
-                .zip(co.chunks_exact_mut(3))
-                .enumerate()
-            {
-                let (x, y) = (i % w, ty * TILE + i / w);
-                let tile = ty * tiles_x + x / TILE;
-                let list = &entries[starts[tile]..starts[tile + 1]];
-                let (t, n, c) = blend_pixel(splats, list, x as u32, y as u32);
-                *t_out = t;
-                *l_out = n;
-                for ch in 0..3 {
-                    c_out[ch] = c[ch] + t * bg[ch];
+            let mut tile = TileBuf::default();
+            let y0 = ty * TILE;
+            let y1 = (y0 + TILE).min(h);
+            for tx in 0..tiles_x {
+                let t = ty * tiles_x + tx;
+                let x0 = tx * TILE;
+                let r = [x0, (x0 + TILE).min(w), y0, y1];
+                blend_tile(splats, &entries[starts[t]..starts[t + 1]], r, &mut tile);
+                for y in y0..y1 {
+                    for x in r[0]..r[1] {
+                        let (i, o) = ((y - y0) * TILE + x - x0, (y - y0) * w + x);
+                        tf[o] = tile.t[i];
+                        la[o] = tile.last[i];
+                        for ch in 0..3 {
+                            co[o * 3 + ch] = tile.c[i][ch] + tile.t[i] * bg[ch];
+                        }
+                    }
                 }
             }
         });
 }
 
-/// Front-to-back blend of one pixel: (final T, list entries up to the last contributor,
-/// colour without background).
-#[inline]
-fn blend_pixel(splats: &[Splat], list: &[u32], x: u32, y: u32) -> (f32, u32, [f32; 3]) {
-    let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
-    let mut t = 1.0f32;
-    let mut c = [0.0f32; 3];
-    let mut last = 0;
+/// One tile's per-pixel state (tile-local, row-major 16 x 16).
+#[derive(Debug)]
+struct TileBuf {
+    t: [f32; TILE * TILE],
+    last: [u32; TILE * TILE],
+    done: [bool; TILE * TILE],
+    c: [[f32; 3]; TILE * TILE],
+}
+
+impl Default for TileBuf {
+    fn default() -> Self {
+        TileBuf {
+            t: [1.0; TILE * TILE],
+            last: [0; TILE * TILE],
+            done: [false; TILE * TILE],
+            c: [[0.0; 3]; TILE * TILE],
+        }
+    }
+}
+
+/// The pixels of `sp`'s rectangle inside the tile `[x0, x1) x [y0, y1)`, as inclusive
+/// image ranges, or `None`.
+#[inline(always)]
+fn clip(sp: &Splat, [x0, x1, y0, y1]: [usize; 4]) -> Option<[usize; 4]> {
+    let [rx0, rx1, ry0, ry1] = sp.rect.map(|v| v as usize);
+    let (cx0, cx1) = (rx0.max(x0), rx1.min(x1 - 1));
+    let (cy0, cy1) = (ry0.max(y0), ry1.min(y1 - 1));
+    (cx0 <= cx1 && cy0 <= cy1).then_some([cx0, cx1, cy0, cy1])
+}
+
+/// Extra width, in pixels, of a row span beyond the solved ellipse bounds (splat-raster's
+/// SPAN_SLACK): far above the f32 rounding of the bounds.
+const SPAN_SLACK: f32 = 1.0 / 64.0;
+
+/// The columns `cx0..=cx1` of row `y` that can have alpha >= 1/255 (splat-raster's
+/// per-row span of the ellipse ½ dᵀ C d <= ln(255 o) + margin, a superset of those pixels).
+#[inline(always)]
+fn row_span(sp: &Splat, y: usize, cx0: usize, cx1: usize) -> Option<(usize, usize)> {
+    if sp.inv_a <= 0.0 {
+        return Some((cx0, cx1));
+    }
+    let dy = sp.y - (y as f32 + 0.5);
+    let disc = sp.two_a_tau - sp.det * dy * dy;
+    if disc.is_nan() || disc < 0.0 {
+        return None;
+    }
+    let half = disc.sqrt() * sp.inv_a;
+    let mid = sp.x - 0.5 + sp.conic[1] * dy * sp.inv_a;
+    let (lo, hi) = (mid - half - SPAN_SLACK, mid + half + SPAN_SLACK);
+    if hi < cx0 as f32 || lo > cx1 as f32 {
+        return None;
+    }
+    let lo = if lo > cx0 as f32 {
+        lo.ceil() as usize
+    } else {
+        cx0
+    };
+    let hi = (hi.floor() as usize).min(cx1);
+    (lo <= hi).then_some((lo, hi))
+}
+
+/// Front-to-back blend of one tile, splat by splat over each splat's pixels (every pixel
+/// still sees its contributors in list order, so the sums are splat-raster's).
+fn blend_tile(splats: &[Splat], list: &[u32], r: [usize; 4], tb: &mut TileBuf) {
+    *tb = TileBuf::default();
+    let live = (r[1] - r[0]) * (r[3] - r[2]);
+    let mut stopped = 0;
     for (k, &e) in list.iter().enumerate() {
         let sp = &splats[e as usize];
-        if !inside(sp, x, y) {
-            continue;
-        }
-        let Some((alpha, _, _, _)) = alpha_at(sp, px, py) else {
+        let Some([cx0, cx1, cy0, cy1]) = clip(sp, r) else {
             continue;
         };
-        let test_t = t * (1.0 - alpha);
-        if test_t < T_MIN {
+        for y in cy0..=cy1 {
+            let py = y as f32 + 0.5;
+            let Some((lo, hi)) = row_span(sp, y, cx0, cx1) else {
+                continue;
+            };
+            for x in lo..=hi {
+                let i = (y - r[2]) * TILE + x - r[0];
+                if tb.done[i] {
+                    continue;
+                }
+                let Some((alpha, _, _, _)) = alpha_at(sp, x as f32 + 0.5, py) else {
+                    continue;
+                };
+                let t = tb.t[i];
+                let test_t = t * (1.0 - alpha);
+                if test_t < T_MIN {
+                    tb.done[i] = true;
+                    stopped += 1;
+                    continue;
+                }
+                let w = alpha * t;
+                for (c, col) in tb.c[i].iter_mut().zip(sp.color) {
+                    *c += col * w;
+                }
+                tb.t[i] = test_t;
+                tb.last[i] = k as u32 + 1;
+            }
+        }
+        if stopped == live {
             break;
         }
-        let w = alpha * t;
-        for (c, col) in c.iter_mut().zip(sp.color) {
-            *c += col * w;
-        }
-        t = test_t;
-        last = k as u32 + 1;
     }
-    (t, last, c)
 }
 
 /// Adds the gradient of a loss to `grads`, given `dl_dcolor` (`[H, W, 3]`, the loss's
@@ -297,18 +385,17 @@ pub fn backward(
     }
 }
 
-/// Per tile row in parallel: every pixel walks its contributors back to front and adds its
-/// share to the entry slots of its tile.
+/// Per tile row in parallel: every tile walks its list back to front, each splat over its
+/// pixels (those whose last contributor is at or after it), and writes the splat's summed
+/// screen gradient into its entry slot.
 fn pixel_backward(state: &mut ViewState, bg: [f32; 3], dl_dcolor: &[f32]) {
-    let (w, tiles_x) = (state.width, state.tiles_x);
+    let (w, h, tiles_x) = (state.width, state.height, state.tiles_x);
     state.entry_grads.clear();
     state.entry_grads.resize(state.entries.len(), [0.0; 9]);
     let starts = &state.tile_start;
-    // Split the entry slots at tile-row boundaries.
     let mut rows_slots = Vec::new();
     let mut rest = &mut state.entry_grads[..];
-    let tiles_y = state.height.div_ceil(TILE);
-    for ty in 0..tiles_y {
+    for ty in 0..h.div_ceil(TILE) {
         let len = starts[(ty + 1) * tiles_x] - starts[ty * tiles_x];
         let (a, b) = rest.split_at_mut(len);
         rows_slots.push(a);
@@ -321,82 +408,113 @@ fn pixel_backward(state: &mut ViewState, bg: [f32; 3], dl_dcolor: &[f32]) {
         .enumerate()
         .for_each(|(ty, slots)| {
             let base = starts[ty * tiles_x];
+            let mut tb = BackBuf::default();
             let y0 = ty * TILE;
-            let y1 = (y0 + TILE).min(state.height);
-            for y in y0..y1 {
-                for x in 0..w {
-                    let pix = y * w + x;
-                    let tile = ty * tiles_x + x / TILE;
-                    let (s0, s1) = (starts[tile], starts[tile + 1]);
-                    let n = last[pix] as usize;
-                    let dc = [
-                        dl_dcolor[pix * 3],
-                        dl_dcolor[pix * 3 + 1],
-                        dl_dcolor[pix * 3 + 2],
-                    ];
-                    if n == 0 || dc == [0.0; 3] {
-                        continue;
+            let y1 = (y0 + TILE).min(h);
+            for tx in 0..tiles_x {
+                let t = ty * tiles_x + tx;
+                let x0 = tx * TILE;
+                let r = [x0, (x0 + TILE).min(w), y0, y1];
+                for y in y0..y1 {
+                    for x in r[0]..r[1] {
+                        let (i, o) = ((y - y0) * TILE + x - x0, y * w + x);
+                        tb.t[i] = t_final[o];
+                        tb.last[i] = last[o];
+                        tb.dc[i] = [dl_dcolor[o * 3], dl_dcolor[o * 3 + 1], dl_dcolor[o * 3 + 2]];
+                        tb.behind[i] = bg.map(|b| b * t_final[o]);
                     }
-                    let list = &entries[s0..s1][..n];
-                    let slot = &mut slots[s0 - base..s1 - base];
-                    pixel_grad(splats, list, slot, x as u32, y as u32, t_final[pix], bg, dc);
                 }
+                let (s0, s1) = (starts[t], starts[t + 1]);
+                tile_grad(
+                    splats,
+                    &entries[s0..s1],
+                    r,
+                    &mut tb,
+                    &mut slots[s0 - base..s1 - base],
+                );
             }
         });
 }
 
-/// One pixel's back-to-front pass (INRIA's `renderCUDA` backward): with R the colour
+/// One tile's backward state per pixel.
+#[derive(Debug)]
+struct BackBuf {
+    t: [f32; TILE * TILE],
+    last: [u32; TILE * TILE],
+    dc: [[f32; 3]; TILE * TILE],
+    behind: [[f32; 3]; TILE * TILE],
+}
+
+impl Default for BackBuf {
+    fn default() -> Self {
+        BackBuf {
+            t: [0.0; TILE * TILE],
+            last: [0; TILE * TILE],
+            dc: [[0.0; 3]; TILE * TILE],
+            behind: [[0.0; 3]; TILE * TILE],
+        }
+    }
+}
+
+/// The back-to-front pass of one tile (INRIA's `renderCUDA` backward): with R the colour
 /// behind contributor j (later contributors plus T_final · bg), dC/dα_j = T_j c_j −
 /// R / (1 − α_j) and dC/dc_j = T_j α_j; T_j is recovered as T_{j+1} / (1 − α_j).
-#[allow(clippy::too_many_arguments)]
-#[inline]
-fn pixel_grad(
+fn tile_grad(
     splats: &[Splat],
     list: &[u32],
-    slot: &mut [[f32; 9]],
-    x: u32,
-    y: u32,
-    t_final: f32,
-    bg: [f32; 3],
-    dc: [f32; 3],
+    r: [usize; 4],
+    tb: &mut BackBuf,
+    slots: &mut [[f32; 9]],
 ) {
-    let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
-    let mut t = t_final;
-    let mut behind = [bg[0] * t, bg[1] * t, bg[2] * t];
     for k in (0..list.len()).rev() {
         let sp = &splats[list[k] as usize];
-        if !inside(sp, x, y) {
-            continue;
-        }
-        let Some((alpha, g, dx, dy)) = alpha_at(sp, px, py) else {
+        let Some([cx0, cx1, cy0, cy1]) = clip(sp, r) else {
             continue;
         };
-        let one_minus = 1.0 - alpha;
-        let tj = t / one_minus;
-        let w = alpha * tj;
-        let mut d_alpha = 0.0;
-        for ch in 0..3 {
-            d_alpha += dc[ch] * (tj * sp.color[ch] - behind[ch] / one_minus);
-            behind[ch] += w * sp.color[ch];
-        }
-        t = tj;
-        let e = &mut slot[k];
-        e[6] += w * dc[0];
-        e[7] += w * dc[1];
-        e[8] += w * dc[2];
-        // alpha = min(0.99, o·G): the clamp passes no gradient.
-        if sp.opacity * g >= ALPHA_MAX {
-            continue;
-        }
-        e[5] += g * d_alpha;
-        let d_power = alpha * d_alpha;
+        let mut e = [0.0f32; 9];
         let [a, b, c] = sp.conic;
-        // power = −½(a dx² + c dy²) − b dx dy with dx = u − px, dy = v − py.
-        e[0] += d_power * -(a * dx + b * dy);
-        e[1] += d_power * -(c * dy + b * dx);
-        e[2] += d_power * -0.5 * dx * dx;
-        e[3] += d_power * -(dx * dy);
-        e[4] += d_power * -0.5 * dy * dy;
+        for y in cy0..=cy1 {
+            let py = y as f32 + 0.5;
+            let Some((lo, hi)) = row_span(sp, y, cx0, cx1) else {
+                continue;
+            };
+            for x in lo..=hi {
+                let i = (y - r[2]) * TILE + x - r[0];
+                if k as u32 >= tb.last[i] {
+                    continue;
+                }
+                let Some((alpha, g, dx, dy)) = alpha_at(sp, x as f32 + 0.5, py) else {
+                    continue;
+                };
+                let one_minus = 1.0 - alpha;
+                let tj = tb.t[i] / one_minus;
+                let w = alpha * tj;
+                let dc = tb.dc[i];
+                let behind = &mut tb.behind[i];
+                let mut d_alpha = 0.0;
+                for ch in 0..3 {
+                    d_alpha += dc[ch] * (tj * sp.color[ch] - behind[ch] / one_minus);
+                    behind[ch] += w * sp.color[ch];
+                }
+                tb.t[i] = tj;
+                e[6] += w * dc[0];
+                e[7] += w * dc[1];
+                e[8] += w * dc[2];
+                // alpha = min(0.99, o·G): the clamp passes no gradient.
+                if sp.opacity * g >= ALPHA_MAX {
+                    continue;
+                }
+                e[5] += g * d_alpha;
+                let d_power = alpha * d_alpha;
+                // power = −½(a dx² + c dy²) − b dx dy with dx = u − px, dy = v − py.
+                e[0] += d_power * -(a * dx + b * dy);
+                e[1] += d_power * -(c * dy + b * dx);
+                e[2] += d_power * -0.5 * dx * dx;
+                e[3] += d_power * -(dx * dy);
+                e[4] += d_power * -0.5 * dy * dy;
+            }
+        }
+        slots[k] = e;
     }
 }
 
