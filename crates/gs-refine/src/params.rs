@@ -31,8 +31,9 @@ pub fn rest_coeffs(degree: usize) -> usize {
 }
 
 impl Params {
-    /// Copies the trainable tensors of `g` (class ids and metadata are not trained; the
-    /// writer takes them from the input again, see [`Params::to_gaussians`]).
+    /// Copies the trainable tensors of `g` after splat-raster's validation (class ids and
+    /// metadata are not trained; the writer takes them from the input again, see
+    /// [`Params::to_gaussians`]).
     pub fn from_gaussians(g: &Gaussians) -> Result<Params> {
         let n = g.len();
         let check = |field: &'static str, got: usize, expected: usize| {
@@ -50,7 +51,16 @@ impl Params {
         check("rotations", g.rotations.len(), n)?;
         check("opacity_logits", g.opacity_logits.len(), n)?;
         check("sh_dc", g.sh_dc.len(), n)?;
-        check("sh_degree", g.sh_degree.min(4), g.sh_degree.min(3))?;
+        if g.sh_degree > 3 {
+            return Err(RefineError::Config {
+                name: "sh_degree",
+                value: g.sh_degree.to_string(),
+                expected: "0..=3",
+            });
+        }
+        // Non-finite means, scales, rotations or SH, zero quaternions: splat-raster's
+        // checks, with its typed error naming the Gaussian and tensor.
+        splat_raster::Rasterizer::new(g)?;
         let rest = g.sh_rest.as_ref().map(|r| r.to_vec()).unwrap_or_default();
         check("sh_rest", rest.len(), n * rest_coeffs(g.sh_degree) * 3)?;
         Ok(Params {

@@ -732,3 +732,19 @@ fn training_bytes_do_not_depend_on_the_thread_count() {
     );
     assert!(a.1.windows(2).all(|w| w[0] < w[1]));
 }
+
+#[test]
+fn bad_gaussians_are_typed_errors() {
+    let c = test_cam();
+    let p = random_scene(&c, 3, 0, 1);
+    let mut g = to_gaussians(&p);
+    let mut means = g.means.to_vec();
+    means[1][2] = f32::NAN;
+    g.means = means.into();
+    let e = Params::from_gaussians(&g).unwrap_err().to_string();
+    assert!(e.contains("means") && e.contains('1'), "{e}");
+    let mut g = to_gaussians(&p);
+    g.opacity_logits = vec![0.0; 2].into();
+    let e = Params::from_gaussians(&g).unwrap_err().to_string();
+    assert!(e.contains("opacity_logits"), "{e}");
+}
