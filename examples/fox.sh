@@ -15,6 +15,10 @@
 #                            pixels at the point's depth: k-NN scales let the few far-off
 #                            points that survive the gates blow up into screen-filling blobs)
 #   5. splat-raster render   the three held-out views, side by side with their photos
+#   6. (optional, FOX_REFINE_ITERS=N) gs-refine run: N iterations of photometric refinement
+#      on the other views at FOX_REFINE_SCALE (default 0.5) of the photos, then gs-refine
+#      eval of the held-out views at half resolution, before and after refinement
+#      (PSNR over every pixel, coverage = alpha > 0.5); PNGs in OUT/heldout_refined/
 # Prints one JSON object: gaussians, median_reproj_px, rejected_frac, heldout_psnr,
 # heldout_coverage, plus the per-view figures and the rejection counts.
 set -euo pipefail
@@ -34,7 +38,7 @@ if [[ -n ${PROFUSE_BIN_DIR:-} ]]; then
     bin=$PROFUSE_BIN_DIR
 else
     cargo build --quiet --release --manifest-path "$here/Cargo.toml" -p profuse-tools \
-        --bin scene-io --bin gs-init --bin splat-raster >&2
+        --bin scene-io --bin gs-init --bin splat-raster --bin gs-refine >&2
     bin=$here/target/release
 fi
 
@@ -79,6 +83,18 @@ for i in "${!HELDOUT[@]}"; do
         --out-dir "$OUT/heldout" >"$OUT/heldout/view_$v.json"
 done
 
+if [[ -n ${FOX_REFINE_ITERS:-} ]]; then
+    excl=$(IFS=,; echo "${HELDOUT[*]}")
+    common=(--cameras "$OUT/scene/cameras.safetensors" --images "$OUT/scene")
+    "$bin/gs-refine" --quiet eval --gaussians "$OUT/gaussians.safetensors" "${common[@]}" \
+        --views "$excl" --scale 0.5 >"$OUT/heldout_init_half.json"
+    "$bin/gs-refine" --quiet run --gaussians "$OUT/gaussians.safetensors" "${common[@]}" \
+        --exclude "$excl" --iterations "$FOX_REFINE_ITERS" --scale "${FOX_REFINE_SCALE:-0.5}" \
+        --out "$OUT/gaussians_refined.safetensors" >"$OUT/gs_refine.json"
+    "$bin/gs-refine" --quiet eval --gaussians "$OUT/gaussians_refined.safetensors" "${common[@]}" \
+        --views "$excl" --scale 0.5 --out-dir "$OUT/heldout_refined" >"$OUT/heldout_refined.json"
+fi
+
 python3 - "$OUT" "${HELDOUT[@]}" <<'EOF'
 import json, sys, pathlib
 out = pathlib.Path(sys.argv[1])
@@ -91,7 +107,18 @@ for v in sys.argv[2:]:
                   "coverage": r["coverage"], "side_by_side": r["files"].get("side_by_side")})
 psnrs = [v["psnr_covered"] for v in views if v["psnr_covered"] is not None]
 rej = g["rejected"]
+refined = {}
+if (out / "gs_refine.json").exists():
+    r = json.loads((out / "gs_refine.json").read_text())
+    before = json.loads((out / "heldout_init_half.json").read_text())
+    after = json.loads((out / "heldout_refined.json").read_text())
+    refined = {"refine_iterations": r["iterations"], "refine_scale": r["scale"],
+               "refine_seconds": r["seconds"],
+               "heldout_half_psnr_before": before["psnr"], "heldout_half_coverage_before": before["coverage"],
+               "heldout_half_psnr_refined": after["psnr"], "heldout_half_coverage_refined": after["coverage"],
+               "heldout_refined_views": after["views"]}
 print(json.dumps({
+    **refined,
     "gaussians": g["kept"],
     "median_reproj_px": g["median_reproj_px"],
     "rejected_frac": rej["total"] / max(g["sampled"], 1),

@@ -13,6 +13,7 @@
 pub mod common;
 pub mod fuse;
 pub mod gs_init;
+pub mod gs_refine;
 pub mod metrics;
 pub mod pq;
 pub mod query;
