@@ -56,6 +56,15 @@ pub enum RefineError {
         /// What it must be.
         expected: &'static str,
     },
+    /// The folder of the output file cannot be created.
+    #[error("{path}: cannot create the output folder")]
+    OutputFolder {
+        /// The folder.
+        path: String,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
     /// No view is left to train on.
     #[error("no training view: {reason}")]
     NoViews {

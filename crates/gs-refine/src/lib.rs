@@ -34,6 +34,7 @@
 
 pub mod error;
 pub mod images;
+pub mod job;
 pub mod loss;
 pub mod params;
 pub mod project;

@@ -15,6 +15,9 @@ use crate::error::{PipelineError, Result};
 pub struct Config {
     /// gs-init: triangulated initial Gaussians (paper 3.1).
     pub gs_init: gs_init::FlatParams,
+    /// gs-refine: photometric refinement of gs-init's Gaussians (paper 3.1, after EDGS);
+    /// `iterations = 0` (the default) skips the stage.
+    pub gs_refine: gs_refine::job::JobParams,
     /// warp-graph: 3D Context Proposals (paper 3.2, Algorithm 1).
     pub warp_graph: warp_graph::Params,
     /// fuse: registration of proposal descriptors (paper 3.3).
@@ -96,7 +99,7 @@ impl Config {
                 return Err(PipelineError::Config {
                     key: path.into(),
                     detail: format!(
-                        "unknown section {section:?}; sections: gs_init, warp_graph, fuse, pq, query, vertex_transfer"
+                        "unknown section {section:?}; sections: gs_init, gs_refine, warp_graph, fuse, pq, query, vertex_transfer"
                     ),
                 });
             };

@@ -47,6 +47,8 @@ pub struct RunOptions {
 pub enum StageName {
     /// Triangulated Gaussians.
     GsInit,
+    /// Photometric refinement (when `gs_refine.iterations` > 0).
+    GsRefine,
     /// The proposals (warp-graph, or a given file).
     WarpGraph,
     /// Registration.
@@ -61,8 +63,9 @@ pub enum StageName {
 
 impl StageName {
     /// Every stage with its command-line name.
-    pub const ALL: [(StageName, &'static str); 6] = [
+    pub const ALL: [(StageName, &'static str); 7] = [
         (StageName::GsInit, "gs-init"),
+        (StageName::GsRefine, "gs-refine"),
         (StageName::WarpGraph, "warp-graph"),
         (StageName::Fuse, "fuse"),
         (StageName::Pq, "pq"),
@@ -139,8 +142,11 @@ pub struct Paths {
     pub masks: PathBuf,
     /// `prompts.safetensors`.
     pub prompts: PathBuf,
-    /// `out/gaussians.safetensors`.
+    /// `out/gaussians.safetensors`: the Gaussians every later stage reads.
     pub gaussians: PathBuf,
+    /// What gs-init writes: `gaussians` itself, or `out/gaussians_init.safetensors` when
+    /// the gs-refine stage runs ([`Paths::with_refinement`]) and writes `gaussians`.
+    pub gaussians_init: PathBuf,
     /// `out/proposals.safetensors`.
     pub proposals: PathBuf,
     /// `out/features[_baseline].safetensors`.
@@ -159,6 +165,15 @@ pub struct Paths {
 }
 
 impl Paths {
+    /// With the gs-refine stage on, gs-init writes `out/gaussians_init.safetensors` and
+    /// gs-refine writes the refined `out/gaussians.safetensors`.
+    pub fn with_refinement(mut self, on: bool) -> Paths {
+        if on {
+            self.gaussians_init = self.out.join("gaussians_init.safetensors");
+        }
+        self
+    }
+
     /// The paths for a scene, an output directory and a variant.
     pub fn new(scene: &Path, out: &Path, baseline: bool) -> Paths {
         let suffix = if baseline { "_baseline" } else { "" };
@@ -174,6 +189,7 @@ impl Paths {
             masks: scene.join("masks.safetensors"),
             prompts: scene.join("prompts.safetensors"),
             gaussians: out.join("gaussians.safetensors"),
+            gaussians_init: out.join("gaussians.safetensors"),
             proposals: out.join("proposals.safetensors"),
             features: out.join(format!("features{suffix}.safetensors")),
             pq: out.join(format!("pq{suffix}.safetensors")),
@@ -366,7 +382,8 @@ pub fn run(
 ) -> Result<Summary> {
     config.validate()?;
     let out = opts.out.clone().unwrap_or_else(|| scene.join("out"));
-    let p = Paths::new(scene, &out, config.fuse.no_proposals);
+    let p = Paths::new(scene, &out, config.fuse.no_proposals)
+        .with_refinement(config.gs_refine.iterations > 0);
     check_input("gs-init", &p.cameras, "cameras file")?;
     check_input(
         "gs-init",
@@ -413,6 +430,12 @@ fn run_stages(
     let stop_after = |stage: StageName| opts.until.is_some_and(|u| u <= stage);
     lines.push(gs_init_stage(runner, config, p)?);
     if stop_after(StageName::GsInit) {
+        return Ok(None);
+    }
+    if config.gs_refine.iterations > 0 {
+        lines.push(gs_refine_stage(runner, config, p)?);
+    }
+    if stop_after(StageName::GsRefine) {
         return Ok(None);
     }
     if !config.fuse.no_proposals {
@@ -500,7 +523,7 @@ fn gs_init_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine
         "gs-init",
         to_json(&config.gs_init),
         inputs,
-        vec![p.gaussians.clone()],
+        vec![p.gaussians_init.clone()],
         || {
             let params = gs_init::Params::from(config.gs_init);
             let match_file = if p.sparse {
@@ -514,10 +537,39 @@ fn gs_init_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine
                     images: p.scene.clone(),
                     matches: match_file,
                 },
-                out: p.gaussians.clone(),
+                out: p.gaussians_init.clone(),
             };
             let report = gs_init::job::run(&job, &params, &|d, t| r.progress(d, t))
                 .map_err(stage_err("gs-init"))?;
+            Ok(to_json(&report))
+        },
+    )
+}
+
+/// gs-refine: gs-init's Gaussians + cameras + photos -> refined gaussians.
+fn gs_refine_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine> {
+    let mut inputs = vec![p.gaussians_init.clone(), p.cameras.clone()];
+    inputs.extend(image_paths(p)?);
+    stage(
+        r,
+        "gs-refine",
+        to_json(&config.gs_refine),
+        inputs,
+        vec![p.gaussians.clone()],
+        || {
+            let job = gs_refine::job::Job {
+                gaussians: p.gaussians_init.clone(),
+                cameras: p.cameras.clone(),
+                images: p.scene.clone(),
+                out: p.gaussians.clone(),
+                exclude: Vec::new(),
+                save_every: 0,
+            };
+            let total = config.gs_refine.iterations;
+            let report = gs_refine::job::run(&job, &config.gs_refine, &mut |it, _, _| {
+                r.progress(it, total)
+            })
+            .map_err(stage_err("gs-refine"))?;
             Ok(to_json(&report))
         },
     )
@@ -750,7 +802,7 @@ fn timing(lines: &[StageLine]) -> BTreeMap<String, f64> {
             .map(|l| l.seconds)
             .sum()
     };
-    let geometry = sec(&["gs-init"]);
+    let geometry = sec(&["gs-init", "gs-refine"]);
     let semantics = sec(&["warp-graph", "fuse"]);
     let indexing = sec(&["pq"]);
     let mut t = BTreeMap::new();

@@ -418,3 +418,63 @@ fn leftovers_of_killed_runs_are_removed_by_the_next_run() {
         assert!(names.is_empty(), "{}: {names:?}", d.display());
     }
 }
+
+/// The gs-refine stage (issue 18): off by default; with iterations it runs between gs-init
+/// and warp-graph, gs-init then writes `gaussians_init` and gs-refine the `gaussians` every
+/// later stage reads; a second run finds everything up to date; `until` stops after it.
+#[test]
+fn gs_refine_stage_runs_between_gs_init_and_warp_graph_when_configured() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let config = tiny_config()
+        .with_overrides(&[
+            "gs_refine.iterations=6".into(),
+            "gs_refine.scale=1.0".into(),
+        ])
+        .unwrap();
+    let until = RunOptions {
+        until: Some(profuse_pipeline::StageName::GsRefine),
+        ..RunOptions::default()
+    };
+    let s = run(dir.path(), &config, &until, &|_| {}).unwrap();
+    assert_eq!(ran(&s), vec![("gs-init", true), ("gs-refine", true)]);
+    let out = dir.path().join("out");
+    let init = profuse_formats::Gaussians::read(out.join("gaussians_init.safetensors")).unwrap();
+    let refined = profuse_formats::Gaussians::read(out.join("gaussians.safetensors")).unwrap();
+    assert_eq!(init.len(), refined.len(), "no pruning configured");
+    assert_ne!(init.means, refined.means, "six Adam steps move the means");
+    let report = &s.stages[1].report;
+    assert_eq!(report["iterations"], 6);
+    assert_eq!(report["train_views"], 4);
+
+    let all = run(dir.path(), &config, &RunOptions::default(), &|_| {}).unwrap();
+    let stages: Vec<&str> = all.stages.iter().map(|l| l.stage.as_str()).collect();
+    assert_eq!(
+        stages,
+        [
+            "gs-init",
+            "gs-refine",
+            "warp-graph",
+            "fuse",
+            "pq",
+            "query",
+            "vertex-transfer"
+        ]
+    );
+    assert!(!all.stages[0].ran && !all.stages[1].ran, "{:?}", ran(&all));
+    assert!(all.stages[2..].iter().all(|l| l.ran), "{:?}", ran(&all));
+    let again = run(dir.path(), &config, &RunOptions::default(), &|_| {}).unwrap();
+    assert!(again.stages.iter().all(|l| !l.ran), "{:?}", ran(&again));
+
+    // Off by default: no gs-refine line, and gs-init writes the gaussians itself.
+    let plain = tempfile::tempdir().unwrap();
+    tiny_scene(plain.path());
+    let until_init = RunOptions {
+        until: Some(profuse_pipeline::StageName::GsRefine),
+        ..RunOptions::default()
+    };
+    let s = run(plain.path(), &tiny_config(), &until_init, &|_| {}).unwrap();
+    assert_eq!(ran(&s), vec![("gs-init", true)]);
+    assert!(plain.path().join("out/gaussians.safetensors").is_file());
+    assert!(!plain.path().join("out/gaussians_init.safetensors").exists());
+}

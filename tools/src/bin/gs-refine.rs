@@ -8,11 +8,11 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
 
 use clap::{Parser, Subcommand};
+use gs_refine::job::{self, Job, JobParams};
 use gs_refine::views::load_views;
-use gs_refine::{Config, Params, Trainer};
+use gs_refine::Params;
 use profuse_bench::gs_refine as bench;
 use profuse_formats::{Cameras, FileKind, Gaussians};
 use profuse_metrics::photo::{side_by_side, to_u8};
@@ -157,80 +157,37 @@ fn refine(a: RunArgs, quiet: bool) -> Result<Value, BoxError> {
     profuse_tools::check_outputs(outs)?;
     let input = a
         .resume
-        .as_ref()
-        .or(a.gaussians.as_ref())
+        .clone()
+        .or(a.gaussians.clone())
         .ok_or("give --gaussians")?;
-    let template = Gaussians::read(input)?;
-    let cams = Cameras::read(&a.cameras)?;
-    let t0 = Instant::now();
-    let views = load_views(&cams, &a.images, a.scale, &a.exclude)?;
-    let (w, h) = views.first().map_or((0, 0), |v| (v.1.width, v.1.height));
-    let config = Config {
+    let job = Job {
+        gaussians: input,
+        cameras: a.cameras,
+        images: a.images,
+        out: a.out,
+        exclude: a.exclude,
+        save_every: a.save_every,
+    };
+    let params = JobParams {
         iterations: a.iterations,
+        scale: a.scale,
         seed: a.seed,
         prune_every: a.prune_every,
         prune_opacity: a.prune_opacity,
-        ..Config::default()
     };
-    let n_views = views.len();
-    let mut tr = Trainer::new(Params::from_gaussians(&template)?, views, config.clone())?;
     let bar = progress_bar(chatty(quiet), a.iterations as u64, "gs-refine", "it");
-    let (mut ema_loss, mut ema_psnr) = (None::<f64>, None::<f64>);
-    let mut first_loss = None;
-    for it in 1..=a.iterations {
-        let s = tr.step();
-        first_loss.get_or_insert(s.loss);
-        let ema = |e: Option<f64>, v: f64| Some(e.map_or(v, |e| 0.95 * e + 0.05 * v));
-        ema_loss = ema(ema_loss, s.loss);
-        ema_psnr = ema(ema_psnr, s.psnr);
+    let report = job::run(&job, &params, &mut |it, loss, psnr| {
         bar.set_position(it as u64);
-        bar.set_message(format!(
-            "loss {:.4} psnr {:.2} dB",
-            ema_loss.unwrap_or(0.0),
-            ema_psnr.unwrap_or(0.0)
-        ));
-        if a.save_every > 0 && it % a.save_every == 0 && it < a.iterations {
-            save(&tr, &template, &a.out, None)?;
-        }
-    }
+        bar.set_message(format!("loss {loss:.4} psnr {psnr:.2} dB"));
+    });
     bar.finish_and_clear();
-    save(&tr, &template, &a.out, a.ply.as_deref())?;
-    Ok(json!({
-        "out": a.out.to_string_lossy(),
-        "ply": a.ply.as_ref().map(|p| p.to_string_lossy()),
-        "gaussians_in": template.len(),
-        "gaussians_out": tr.params().len(),
-        "iterations": a.iterations,
-        "scale": a.scale,
-        "width": w,
-        "height": h,
-        "train_views": n_views,
-        "excluded": a.exclude,
-        "first_loss": first_loss,
-        "final_loss_ema": ema_loss,
-        "final_psnr_ema": ema_psnr,
-        "extent": tr.extent(),
-        "seconds": t0.elapsed().as_secs_f64(),
-        "config": config,
-    }))
-}
-
-/// Writes the current Gaussians (and the PLY when asked), each atomically.
-fn save(
-    tr: &Trainer,
-    template: &Gaussians,
-    out: &Path,
-    ply: Option<&Path>,
-) -> Result<(), BoxError> {
-    let g = tr.params().to_gaussians(template, Some(tr.kept()));
-    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)?;
+    let report = report?;
+    if let Some(ply) = &a.ply {
+        scene_io::ply::write_inria_ply(ply, &Gaussians::read(&report.out)?)?;
     }
-    g.write(out)?;
-    if let Some(p) = ply {
-        scene_io::ply::write_inria_ply(p, &g)?;
-    }
-    Ok(())
+    let mut value = serde_json::to_value(&report)?;
+    value["ply"] = json!(a.ply.as_ref().map(|p| p.to_string_lossy()));
+    Ok(value)
 }
 
 fn eval(

@@ -24,7 +24,8 @@ pub enum Command {
         /// The file to inspect (any kind of SPEC.md).
         file: PathBuf,
     },
-    /// Run every stage on a scene directory (SPEC.md §6): gs-init, warp-graph, fuse, pq,
+    /// Run every stage on a scene directory (SPEC.md §6): gs-init, gs-refine (only with
+    /// gs_refine.iterations > 0), warp-graph, fuse, pq,
     /// query (LERF layout over gt/label frames when present) and vertex-transfer (when
     /// gt/mesh.safetensors exists). A stage is skipped when its outputs are newer than its
     /// inputs and its parameters are unchanged. Prints the timing table (paper Table 4
@@ -37,7 +38,8 @@ pub enum Command {
         /// warp-graph; it must have one entry per mask of SCENE/masks.safetensors.
         #[arg(long, value_name = "FILE")]
         proposals: Option<PathBuf>,
-        /// Stop after this stage (gs-init, warp-graph, fuse, pq, query, vertex-transfer);
+        /// Stop after this stage (gs-init, gs-refine, warp-graph, fuse, pq, query,
+        /// vertex-transfer);
         /// a run that stops early prints its stages but no scores. Used to split a run
         /// into parts, e.g. `--until warp-graph`, then `fuse-shard` per view range (on any
         /// machine that sees the files), then `--fuse-partials`.
@@ -177,7 +179,8 @@ pub struct SceneArgs {
 
 #[derive(Args, Debug)]
 pub struct Common {
-    /// TOML configuration (sections gs_init, warp_graph, fuse, pq, query, vertex_transfer;
+    /// TOML configuration (sections gs_init, gs_refine, warp_graph, fuse, pq, query,
+    /// vertex_transfer;
     /// `out/config.toml` of a run is a complete one). For `run` missing keys take the
     /// paper's defaults; for `demo` they keep the demo's settings (gs_init.budget=3000,
     /// pq.sample=16384, pq.iters=10) and the file's keys apply on top.
