@@ -256,10 +256,7 @@ pub fn run(job: &Job, params: &Params, on_view: &mut dyn FnMut(&ViewReport)) -> 
         let precision = job
             .precision
             .unwrap_or_else(|| Precision::of(&masks.features));
-        let reg = finish(&partial, precision);
-        reg.features.write(out)?;
-        add_registration(&mut report, &reg, &partial, precision);
-        report.out = Some(out.clone());
+        write_features(&partial, precision, out, &mut report)?;
     }
     report.seconds = t1.elapsed().as_secs_f64();
     Ok(Run { report, partial })
@@ -277,13 +274,7 @@ pub fn run_merged(job: &Job, params: &Params, partials: &[PathBuf]) -> Result<Ru
     let cameras = Cameras::read(&job.cameras)?;
     let masks = Masks::read(&job.masks)?;
     let groups = job_groups(job, params, &masks)?;
-    let parts = partials
-        .iter()
-        .map(PartialSums::read)
-        .collect::<Result<Vec<_>>>()?;
-    let names: Vec<String> = partials.iter().map(|p| name(p)).collect();
-    let merged = crate::merge(&parts, &names)?;
-    drop(parts);
+    let (merged, names) = read_and_merge(partials)?;
     let expected = crate::partial::JobFacts {
         num_gaussians: gaussians.len(),
         num_views: cameras.len(),
@@ -301,22 +292,14 @@ pub fn run_merged(job: &Job, params: &Params, partials: &[PathBuf]) -> Result<Ru
             found,
         },
     )?;
-    if !merged.is_complete() {
-        return Err(crate::FuseError::MissingViews {
-            missing: merged.missing_views(),
-            views: merged.num_views(),
-        });
-    }
+    require_every_view(&merged)?;
     let load_s = t0.elapsed().as_secs_f64();
     let mut report = base_report(&merged, [0, merged.num_views()], load_s);
     if let Some(out) = &job.out {
         let precision = job
             .precision
             .unwrap_or_else(|| Precision::of(&masks.features));
-        let reg = finish(&merged, precision);
-        reg.features.write(out)?;
-        add_registration(&mut report, &reg, &merged, precision);
-        report.out = Some(out.clone());
+        write_features(&merged, precision, out, &mut report)?;
     }
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(Run {
@@ -333,27 +316,51 @@ pub fn merge_files(
     precision: Option<Precision>,
 ) -> Result<Report> {
     let t0 = Instant::now();
+    let (merged, _) = read_and_merge(partials)?;
+    require_every_view(&merged)?;
+    let precision = precision.unwrap_or_else(|| Precision::of(merged.mask_features()));
+    let mut report = base_report(&merged, [0, merged.num_views()], 0.0);
+    write_features(&merged, precision, out, &mut report)?;
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+/// Reads partial-sums files and adds them up (checking them against each other); returns
+/// the sums and the files' names for messages.
+fn read_and_merge(partials: &[PathBuf]) -> Result<(PartialSums, Vec<String>)> {
     let parts = partials
         .iter()
         .map(PartialSums::read)
         .collect::<Result<Vec<_>>>()?;
     let names: Vec<String> = partials.iter().map(|p| name(p)).collect();
     let merged = crate::merge(&parts, &names)?;
-    drop(parts);
-    if !merged.is_complete() {
-        return Err(crate::FuseError::MissingViews {
-            missing: merged.missing_views(),
-            views: merged.num_views(),
-        });
+    Ok((merged, names))
+}
+
+/// Merged shards must cover every view before they are finished.
+fn require_every_view(merged: &PartialSums) -> Result<()> {
+    if merged.is_complete() {
+        return Ok(());
     }
-    let precision = precision.unwrap_or_else(|| Precision::of(merged.mask_features()));
-    let reg = finish(&merged, precision);
+    Err(crate::FuseError::MissingViews {
+        missing: merged.missing_views(),
+        views: merged.num_views(),
+    })
+}
+
+/// Finishes the sums into descriptors, writes them to `out` (atomically) and adds the
+/// registration's figures to `report`.
+fn write_features(
+    partial: &PartialSums,
+    precision: Precision,
+    out: &Path,
+    report: &mut Report,
+) -> Result<()> {
+    let reg = finish(partial, precision);
     reg.features.write(out)?;
-    let mut report = base_report(&merged, [0, merged.num_views()], 0.0);
-    add_registration(&mut report, &reg, &merged, precision);
+    add_registration(report, &reg, partial, precision);
     report.out = Some(out.to_path_buf());
-    report.seconds = t0.elapsed().as_secs_f64();
-    Ok(report)
+    Ok(())
 }
 
 /// The groups the job registers: its proposals under the parameters, or one per mask.
