@@ -98,6 +98,10 @@ __all__ = [
     "fixed_point",
     "fixed_point_words",
     "NO_GROUP",
+    "WarpPartial",
+    "read_warp_partial",
+    "WARP_COUNTERS",
+    "WARP_INPUTS",
     "write_file",
     "write_record",
     "encode_file",
@@ -117,6 +121,7 @@ __all__ = [
     "write_view_maps",
     "write_topk",
     "write_fuse_partial",
+    "write_warp_partial",
     "read_any",
     "inspect",
     "report_json",
@@ -167,6 +172,7 @@ KINDS = (
     "view_maps",
     "topk",
     "fuse_partial",
+    "warp_partial",
 )
 
 _U32_MAX = 2**32 - 1
@@ -2314,6 +2320,128 @@ def _fuse_partial(c: Container) -> FusePartial:
     )
 
 
+#: The integer counters of a ``warp_partial`` shard (metadata keys, in this order).
+WARP_COUNTERS = (
+    "skipped_pairs",
+    "edges_tested",
+    "cells_total",
+    "cells_low_certainty",
+    "cells_occluded",
+    "cells_gated",
+    "rejected_iou",
+    "rejected_box_iou",
+    "rejected_one_direction_only",
+    "rejected_no_reverse_overlap",
+)
+#: The keys identifying a ``warp_partial`` shard's inputs and parameters.
+WARP_INPUTS = ("input_masks", "input_matches", "input_cameras", "input_gaussians", "input_params")
+
+
+@dataclasses.dataclass
+class WarpPartial(_Record):
+    """``profuse.warp_partial``: the accepted mask links of consecutive view pairs of a
+    warp-graph run, with the shard's counters (SPEC.md 4.16)."""
+
+    KIND: ClassVar[str] = "warp_partial"
+    TENSORS: ClassVar[tuple[str, ...]] = ("pairs", "edge_offsets", "edge_masks", "edge_scores")
+
+    path: str
+    metadata: dict[str, str]
+    num_views: int
+    num_masks: int
+    num_view_pairs: int
+    first_pair: int
+    #: The counters named by :data:`WARP_COUNTERS`.
+    counters: dict[str, int]
+    #: The values of the :data:`WARP_INPUTS` keys.
+    inputs: dict[str, str]
+    #: U32 [P, 2]: the view pairs (i < j), strictly ascending.
+    pairs: np.ndarray
+    #: U64 [P + 1]: pair p's links are ``edge_offsets[p] .. edge_offsets[p + 1]``.
+    edge_offsets: np.ndarray
+    #: U32 [E, 2]: global mask ids of every link.
+    edge_masks: np.ndarray
+    #: F64 [E, 2]: (mask IoU, box IoU) of every link.
+    edge_scores: np.ndarray
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "views": self.num_views,
+            "masks": self.num_masks,
+            "view_pairs": self.num_view_pairs,
+            "shard_pairs": int(self.pairs.shape[0]),
+            "edges": int(self.edge_masks.shape[0]),
+        }
+
+
+def _warp_partial_values(path: str, v: int, m: int, a: dict[str, np.ndarray]) -> None:
+    """The value rules of SPEC.md 4.16 after the first_pair check (Rust ``validate``)."""
+    pairs = a["pairs"].reshape(-1, 2).astype(np.int64)
+    bad = (pairs[:, 0] >= pairs[:, 1]) | (pairs[:, 1] >= v)
+    if pairs.shape[0] > 1:
+        earlier = (pairs[:-1, 0] < pairs[1:, 0]) | ((pairs[:-1, 0] == pairs[1:, 0]) & (pairs[:-1, 1] < pairs[1:, 1]))
+        bad[1:] |= ~earlier
+    k = _first(bad)
+    if k is not None:
+        i, j = int(pairs[k, 0]), int(pairs[k, 1])
+        raise _out_of_range(path, "pairs", k, f"[{i}, {j}]", f"view pairs (i < j < {v}), strictly ascending")
+    masks = a["edge_masks"].reshape(-1, 2).astype(np.int64)
+    _check_offsets(path, "edge_offsets", a["edge_offsets"], masks.shape[0])
+    k = _first((masks[:, 0] >= masks[:, 1]) | (masks[:, 1] >= m))
+    if k is not None:
+        raise _out_of_range(
+            path, "edge_masks", k, f"[{masks[k, 0]}, {masks[k, 1]}]", f"global mask ids, first < second < {m}"
+        )
+    scores = a["edge_scores"].reshape(-1)
+    _check_finite(path, "edge_scores", scores)
+    k = _first(~((scores >= 0) & (scores <= 1)))
+    if k is not None:
+        raise _out_of_range(path, "edge_scores", k, _format_float(float(scores[k])), "a value in [0, 1]")
+
+
+def _warp_partial(c: Container) -> WarpPartial:
+    r = _Reader(c)
+    path = c.path
+    integer = "a non-negative integer"
+    num_views = r.meta_usize("num_views", integer)
+    num_masks = r.meta_usize("num_masks", integer)
+    num_view_pairs = r.meta_usize("num_view_pairs", integer)
+    first_pair = r.meta_usize("first_pair", integer)
+    counters = {}
+    for key in WARP_COUNTERS:
+        value = _parse_usize(r.meta(key, "a decimal counter below 2^64"))
+        if value is None or value > _U64_MAX:
+            raise _meta_error(path, key, "a decimal counter below 2^64")
+        counters[key] = value
+    inputs = {key: r.meta(key, "a string identifying the input") for key in WARP_INPUTS}
+    r.req("pairs", "U32", "P,2", lanes=2)
+    r.bind("P1", r.dim("P") + 1, "`pairs` rows + 1")
+    r.req("edge_offsets", "U64", "P1")
+    r.req("edge_masks", "U32", "E,2", lanes=2)
+    r.req("edge_scores", "F64", "E,2", lanes=2)
+    a = r.load()
+    p = a["pairs"].shape[0]
+    if first_pair + p > num_view_pairs:
+        raise _meta_error(
+            path, "first_pair", f"first_pair + {p} (the shard's pairs) <= num_view_pairs {num_view_pairs}"
+        )
+    _warp_partial_values(path, num_views, num_masks, a)
+    return WarpPartial(
+        path=path,
+        metadata=dict(c.metadata),
+        num_views=num_views,
+        num_masks=num_masks,
+        num_view_pairs=num_view_pairs,
+        first_pair=first_pair,
+        counters=counters,
+        inputs=inputs,
+        pairs=a["pairs"],
+        edge_offsets=a["edge_offsets"],
+        edge_masks=a["edge_masks"],
+        edge_scores=a["edge_scores"],
+    )
+
+
 _READERS: dict[str, Callable[[Container], _Record]] = {
     "cameras": _cameras,
     "gaussians": _gaussians,
@@ -2330,6 +2458,7 @@ _READERS: dict[str, Callable[[Container], _Record]] = {
     "view_maps": _view_maps,
     "topk": _topk,
     "fuse_partial": _fuse_partial,
+    "warp_partial": _warp_partial,
 }
 
 
@@ -2412,6 +2541,11 @@ def read_topk(path: Any) -> TopK:
 def read_fuse_partial(path: Any) -> FusePartial:
     """Reads and fully validates a ``profuse.fuse_partial`` file."""
     return _read_kind(path, "fuse_partial")
+
+
+def read_warp_partial(path: Any) -> WarpPartial:
+    """Reads and fully validates a ``profuse.warp_partial`` file."""
+    return _read_kind(path, "warp_partial")
 
 
 def _read_container(c: Container) -> _Record:
@@ -3049,6 +3183,49 @@ def write_fuse_partial(
         "hits": _meta_int(p, "hits", hits),
     }
     _finish(path, "fuse_partial", tensors, fixed, metadata, generator)
+
+
+def write_warp_partial(
+    path: Any,
+    *,
+    num_views: int,
+    num_masks: int,
+    num_view_pairs: int,
+    first_pair: int,
+    pairs: Any,
+    edge_offsets: Any,
+    edge_masks: Any,
+    edge_scores: Any,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+    **fields: Any,
+) -> None:
+    """``profuse.warp_partial`` (SPEC.md 4.16): the evidence of a warp-graph view-pair
+    shard. ``fields`` holds every counter of :data:`WARP_COUNTERS` (an integer) and every
+    key of :data:`WARP_INPUTS` (a string)."""
+    p = _label(path)
+    tensors = {
+        "pairs": _tensor(p, "pairs", pairs, ("U32",)),
+        "edge_offsets": _tensor(p, "edge_offsets", edge_offsets, ("U64",)),
+        "edge_masks": _tensor(p, "edge_masks", edge_masks, ("U32",)),
+        "edge_scores": _tensor(p, "edge_scores", edge_scores, ("F64",)),
+    }
+    fixed = {
+        "num_views": _meta_int(p, "num_views", num_views),
+        "num_masks": _meta_int(p, "num_masks", num_masks),
+        "num_view_pairs": _meta_int(p, "num_view_pairs", num_view_pairs),
+        "first_pair": _meta_int(p, "first_pair", first_pair),
+    }
+    unknown = sorted(set(fields) - set(WARP_COUNTERS) - set(WARP_INPUTS))
+    if unknown:
+        raise TypeError(f"write_warp_partial() got unexpected keyword arguments {unknown}")
+    for key in WARP_COUNTERS:
+        fixed[key] = _meta_int(p, key, fields.get(key))
+    for key in WARP_INPUTS:
+        if not isinstance(fields.get(key), str):
+            raise _meta_error(p, key, "a string identifying the input")
+        fixed[key] = fields[key]
+    _finish(path, "warp_partial", tensors, fixed, metadata, generator)
 
 
 # --------------------------------------------------------------------------------------

@@ -241,6 +241,16 @@ def sample(kind: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
             "num_gaussians": "4", "num_views": "3", "k": "2", "grouping": "blend",
             "orphans": "ignore", "num_groups": "3", "pixels": "10", "hits": "15",
         }
+    if kind == "warp_partial":
+        meta = {"num_views": "3", "num_masks": "6", "num_view_pairs": "4", "first_pair": "1"}
+        meta.update({key: str(i) for i, key in enumerate(pf.WARP_COUNTERS)})
+        meta.update({key: "id" for key in pf.WARP_INPUTS})
+        return {
+            "pairs": np.array([[0, 2], [1, 2]], u32),
+            "edge_offsets": np.array([0, 2, 2], np.uint64),
+            "edge_masks": np.array([[0, 4], [1, 5]], u32),
+            "edge_scores": np.array([[0.75, 0.5], [0.1, 1.0]], np.float64),
+        }, meta
     raise KeyError(kind)
 
 
@@ -262,6 +272,7 @@ GENERIC = {
     "view_maps": ("depth", "depth", ("depth", "object_ids")),
     "topk": ("weights", "weights", ("ids", "weights")),
     "fuse_partial": ("w_sums", "mask_features", ("mask_group", "mask_mass")),
+    "warp_partial": ("edge_scores", "edge_scores", ("edge_masks", "edge_scores")),
 }
 
 # Per kind: a mutation putting an id or value out of range, and the field it names.
@@ -281,6 +292,7 @@ OUT_OF_RANGE: dict[str, tuple[Callable[[dict], None], str]] = {
     "view_maps": (lambda t: t["object_ids"].__setitem__((0, 0, 0), 3), "object_ids"),
     "topk": (lambda t: t["ids"].__setitem__((0, 0, 1), 7), "ids"),
     "fuse_partial": (lambda t: t["mask_group"].__setitem__(2, 3), "mask_group"),
+    "warp_partial": (lambda t: t["edge_masks"].__setitem__((1, 1), 6), "edge_masks"),
 }
 
 

@@ -36,7 +36,8 @@ RUST = os.environ.get("PROFUSE_RUST_INSPECT")
 # Metadata keys that the per-kind writers take as arguments, and how to parse them.
 _NAME_LISTS = {"image_names", "view_names", "names"}
 _INTEGERS = {"num_views", "num_gaussians", "num_objects", "sh_degree", "k", "num_groups", "pixels", "hits"}
-_TEXTS = {"coords", "prompt", "grouping", "orphans"}
+_INTEGERS |= {"num_masks", "num_view_pairs", "first_pair", *pf.WARP_COUNTERS}
+_TEXTS = {"coords", "prompt", "grouping", "orphans", *pf.WARP_INPUTS}
 # Keys a writer sets itself (the Rust writer does too).
 _FIXED = {"convention", "metric", "nbits"}
 
@@ -233,6 +234,18 @@ def own_samples() -> dict[str, dict[str, Any]]:
             w_groups=[1, 0, 1],
             w_sums=pf.fixed_point_words([5, 2**64 + 1, 2**62]),
             metadata={"weight_scale": "2^-62"},
+        ),
+        "warp_partial": dict(
+            num_views=4,
+            num_masks=5,
+            num_view_pairs=3,
+            first_pair=0,
+            pairs=np.array([[0, 1], [1, 3]], np.uint32),
+            edge_offsets=np.array([0, 0, 1], np.uint64),
+            edge_masks=np.array([[1, 4]], np.uint32),
+            edge_scores=np.array([[0.1 + 0.2, 1.0]]),
+            **{key: i for i, key in enumerate(pf.WARP_COUNTERS)},
+            **{key: f"{key}-id" for key in pf.WARP_INPUTS},
         ),
     }
 

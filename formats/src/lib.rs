@@ -83,6 +83,7 @@ mod selection;
 mod topk;
 mod vertex_labels;
 mod view_maps;
+mod warp_partial;
 mod writer;
 
 pub use cameras::{Cameras, Pose, ROTATION_TOLERANCE};
@@ -106,6 +107,7 @@ pub use selection::Selection;
 pub use topk::{TopK, NO_GAUSSIAN, WEIGHT_SUM_TOLERANCE};
 pub use vertex_labels::VertexLabels;
 pub use view_maps::{ViewMaps, NO_OBJECT};
+pub use warp_partial::{WarpPartial, WARP_COUNTERS, WARP_INPUTS};
 pub use writer::{write_atomically, FileWriter};
 
 /// Re-exported so users can build F16 tensors without naming the `half` crate.

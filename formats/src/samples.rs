@@ -15,6 +15,7 @@ use crate::writer::FileWriter;
 use crate::{
     Cameras, Features, FuseGrouping, FuseOrphans, FusePartial, Gaussians, Masks, Matches, Mesh, Pq,
     Prompts, Proposals, Selection, SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords,
+    WarpPartial,
 };
 
 /// Two views looking at the origin from +x and −z, 8x6 pixels.
@@ -362,6 +363,31 @@ pub fn fuse_partial() -> FusePartial {
         w_groups: vec![0, 2, 0, 2].into(),
         w_sums: vec![[3 << 40, 0], [1 << 40, 0], [2 << 40, 0], [0, 1]].into(),
         extra: BTreeMap::from([("weight_scale".to_string(), "2^-62".to_string())]),
+    }
+}
+
+/// A warp-graph shard over view pairs 1 and 2 of 4 ({0, 2} and {1, 2} of 3 views, 6
+/// masks): pair {0, 2} has two links, pair {1, 2} none.
+pub fn warp_partial() -> WarpPartial {
+    let input = |s: &str| s.to_string();
+    WarpPartial {
+        num_views: 3,
+        num_masks: 6,
+        num_view_pairs: 4,
+        first_pair: 1,
+        counters: [0, 5, 96, 10, 6, 80, 2, 1, 0, 0],
+        inputs: [
+            input("4096:00000000deadbeef"),
+            input("8192:0123456789abcdef"),
+            input("512:1111222233334444"),
+            input("none"),
+            input("{\"tau_iou\":0.5}"),
+        ],
+        pairs: vec![[0, 2], [1, 2]].into(),
+        edge_offsets: vec![0, 2, 2].into(),
+        edge_masks: vec![[0, 4], [1, 5]].into(),
+        edge_scores: vec![[0.75, 0.5], [0.1, 1.0]].into(),
+        extra: BTreeMap::from([("generator".to_string(), "samples".to_string())]),
     }
 }
 
@@ -1465,6 +1491,7 @@ fn cases() -> Vec<Case> {
         invalid: inv,
     });
     cases.push(fuse_partial_case());
+    cases.push(warp_partial_case());
 
     cases
 }
@@ -1600,6 +1627,98 @@ fn fuse_partial_case() -> Case {
     ]);
     Case {
         stem: "fuse_partial",
+        valid: v,
+        invalid: inv,
+    }
+}
+
+/// The warp_partial sample and its defects.
+fn warp_partial_case() -> Case {
+    let wp = warp_partial();
+    let v = bytes_of(&unvalidated(&wp));
+    let mut inv = container_defects(&v, "edge_scores");
+    inv.extend([
+        (
+            "missing_tensor",
+            without_tensor(&v, "edge_offsets"),
+            "missing_tensor",
+            Some("edge_offsets"),
+        ),
+        (
+            "dtype",
+            retype(&v, "edge_scores", Dtype::F32),
+            "dtype",
+            Some("edge_scores"),
+        ),
+        (
+            "shape",
+            reshape(&v, "edge_scores", &[3, 2]),
+            "shape",
+            Some("edge_scores"),
+        ),
+        (
+            "offsets_shape",
+            reshape(&v, "edge_offsets", &[4]),
+            "shape",
+            Some("edge_offsets"),
+        ),
+        (
+            "metadata",
+            with_meta(&wp, "cells_gated", Some("-1")),
+            "metadata",
+            Some("cells_gated"),
+        ),
+        (
+            "no_input",
+            with_meta(&wp, "input_matches", None),
+            "metadata",
+            Some("input_matches"),
+        ),
+        (
+            "past_end",
+            with_meta(&wp, "first_pair", Some("3")),
+            "metadata",
+            Some("first_pair"),
+        ),
+        (
+            "pairs",
+            mutated(&wp, |p| set(&mut p.pairs, 1, [2, 1])),
+            "out_of_range",
+            Some("pairs"),
+        ),
+        (
+            "unsorted",
+            mutated(&wp, |p| set(&mut p.pairs, 1, [0, 1])),
+            "out_of_range",
+            Some("pairs"),
+        ),
+        (
+            "offsets",
+            mutated(&wp, |p| set(&mut p.edge_offsets, 2, 1)),
+            "out_of_range",
+            Some("edge_offsets"),
+        ),
+        (
+            "out_of_range",
+            mutated(&wp, |p| set(&mut p.edge_masks, 1, [1, 6])),
+            "out_of_range",
+            Some("edge_masks"),
+        ),
+        (
+            "non_finite",
+            mutated(&wp, |p| set(&mut p.edge_scores, 0, [f64::NAN, 0.5])),
+            "non_finite",
+            Some("edge_scores"),
+        ),
+        (
+            "score",
+            mutated(&wp, |p| set(&mut p.edge_scores, 1, [0.1, 1.5])),
+            "out_of_range",
+            Some("edge_scores"),
+        ),
+    ]);
+    Case {
+        stem: "warp_partial",
         valid: v,
         invalid: inv,
     }

@@ -8,7 +8,7 @@ use profuse_formats::samples::{self, Vector};
 use profuse_formats::{
     f16, fixed_point, fixed_point_words, inspect, Cameras, Container, Features, FileKind, Floats,
     FusePartial, Gaussians, Labels, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
-    SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords,
+    SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords, WarpPartial, WARP_COUNTERS,
 };
 use proptest::prelude::*;
 
@@ -120,6 +120,7 @@ fn each_typed_reader_rejects_its_defects() {
     check::<ViewMaps>("view_maps");
     check::<TopK>("topk");
     check::<FusePartial>("fuse_partial");
+    check::<WarpPartial>("warp_partial");
 }
 
 #[test]
@@ -171,6 +172,41 @@ fn fuse_partial_round_trips_and_the_writer_validates() {
     bad.w_sums = vec![[1, 0], [1, 0], [1, 0]].into();
     let err = bad.write(dir.path().join("bad.safetensors")).unwrap_err();
     assert_eq!((err.code(), err.field()), ("shape", Some("w_sums")));
+    assert!(!dir.path().join("bad.safetensors").exists());
+}
+
+/// The warp_partial sample round-trips with its f64 scores bit for bit and its counters
+/// and inputs under their metadata keys; the writer refuses scores that do not match the
+/// links.
+#[test]
+fn warp_partial_round_trips_and_the_writer_validates() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("w.safetensors");
+    let mut w = samples::warp_partial();
+    w.edge_scores = vec![[0.1 + 0.2, 1.0 / 3.0], [f64::MIN_POSITIVE, 1.0]].into();
+    w.write(&p).unwrap();
+    let back = WarpPartial::read(&p).unwrap();
+    assert_eq!(back, w);
+    assert_eq!(back.edge_scores[0][0].to_bits(), (0.1f64 + 0.2).to_bits());
+    let c = Container::open(&p).unwrap();
+    assert_eq!(c.metadata()["cells_gated"], "80");
+    assert_eq!(c.metadata()["input_gaussians"], "none");
+    assert_eq!(WARP_COUNTERS[5], "cells_gated");
+    let counts: Vec<(&str, u64)> = back.counts().into_iter().collect();
+    assert_eq!(
+        counts,
+        [
+            ("edges", 2),
+            ("masks", 6),
+            ("shard_pairs", 2),
+            ("view_pairs", 4),
+            ("views", 3)
+        ]
+    );
+    let mut bad = w.clone();
+    bad.edge_scores = vec![[0.5, 0.5]].into();
+    let err = bad.write(dir.path().join("bad.safetensors")).unwrap_err();
+    assert_eq!((err.code(), err.field()), ("shape", Some("edge_scores")));
     assert!(!dir.path().join("bad.safetensors").exists());
 }
 
