@@ -135,6 +135,7 @@ mod graph;
 pub mod job;
 mod overlap;
 mod params;
+mod shard;
 pub mod synthetic;
 mod visibility;
 
@@ -157,6 +158,7 @@ pub use flat::FlatParams;
 pub use graph::{ComponentStats, Link, Rejections};
 pub use overlap::{CellBox, CellCounts, DirectedOverlaps, Overlap};
 pub use params::{Grouping, Params, Sampling, Visibility};
+pub use shard::{Evidence, ShardMismatch};
 
 use extent::{Bounds, MaskExtents};
 use frame::Frame;
@@ -295,10 +297,10 @@ struct ViewPair {
 }
 
 #[derive(Debug, Default)]
-struct PairResult {
-    links: graph::PairLinks,
-    cells: CellCounts,
-    skipped: bool,
+pub(crate) struct PairResult {
+    pub(crate) links: graph::PairLinks,
+    pub(crate) cells: CellCounts,
+    pub(crate) skipped: bool,
 }
 
 impl<'a> Association<'a> {
@@ -406,7 +408,42 @@ impl<'a> Association<'a> {
     /// Runs Algorithm 1 over every view pair; `progress(done, total)` is called after each
     /// view pair (from worker threads, in any order).
     pub fn run(&self, progress: &(dyn Fn(usize, usize) + Sync)) -> Result<Outcome> {
-        let pairs = self.view_pairs();
+        let evidence = self.pair_evidence(0..self.num_view_pairs(), progress)?;
+        self.group(&evidence)
+    }
+
+    /// The number of unordered view pairs, T: [`Association::pair_evidence`] takes ranges
+    /// of `0..T`.
+    pub fn num_view_pairs(&self) -> usize {
+        self.view_pairs().len()
+    }
+
+    /// The unordered view pairs (i < j) in the order that ranges of
+    /// [`Association::pair_evidence`] index.
+    pub fn view_pair_ids(&self) -> Vec<[u32; 2]> {
+        self.view_pairs()
+            .iter()
+            .map(|p| [p.i as u32, p.j as u32])
+            .collect()
+    }
+
+    /// The mask-pair evidence (accepted links and counters) of view pairs `range` of
+    /// [`Association::view_pair_ids`]; `progress(done, total)` is called after each pair.
+    /// Evidence of consecutive ranges concatenated ([`Evidence::merge`]) equals the
+    /// evidence of their union, so a run split into ranges groups into the same proposals.
+    pub fn pair_evidence(
+        &self,
+        range: std::ops::Range<usize>,
+        progress: &(dyn Fn(usize, usize) + Sync),
+    ) -> Result<Evidence> {
+        let all = self.view_pairs();
+        let Some(pairs) = all.get(range.clone()) else {
+            return Err(WarpGraphError::InvalidParameter {
+                name: "pairs",
+                value: format!("{}..{}", range.start, range.end),
+                expected: "a range of the run's view pairs (0..T)",
+            });
+        };
         let done = AtomicUsize::new(0);
         let results: Vec<Result<PairResult>> = pairs
             .par_iter()
@@ -416,18 +453,32 @@ impl<'a> Association<'a> {
                 r
             })
             .collect();
-        let mut edges = Vec::new();
-        let mut cells = CellCounts::default();
-        let mut rejections = Rejections::default();
-        let (mut tested, mut skipped) = (0u64, 0usize);
-        for r in results {
-            let r = r?;
-            edges.extend_from_slice(&r.links.edges);
-            cells.add(&r.cells);
-            rejections.add(&r.links.rejections);
-            tested += r.links.tested;
-            skipped += usize::from(r.skipped);
+        let mut evidence = Evidence::empty(range.start);
+        for (vp, r) in pairs.iter().zip(results) {
+            evidence.push_pair([vp.i as u32, vp.j as u32], &r?);
         }
+        Ok(evidence)
+    }
+
+    /// Groups the masks from the evidence of every view pair (one run's, or shards' merged
+    /// in view-pair order) into proposals.
+    pub fn group(&self, evidence: &Evidence) -> Result<Outcome> {
+        let pairs = self.view_pairs();
+        if evidence.first_pair != 0 || evidence.pairs != self.view_pair_ids() {
+            return Err(WarpGraphError::InvalidParameter {
+                name: "evidence",
+                value: format!(
+                    "view pairs {}..{} ({} pairs)",
+                    evidence.first_pair,
+                    evidence.first_pair + evidence.pairs.len(),
+                    evidence.pairs.len()
+                ),
+                expected: "the evidence of every view pair of these masks and matches, in order",
+            });
+        }
+        let edges = evidence.edges.clone();
+        let (cells, rejections) = (evidence.cells, evidence.rejections);
+        let (tested, skipped) = (evidence.tested, evidence.skipped as usize);
         let masks = self.frame.masks;
         let (extents, proposals, components, consensus) = match self.grouping {
             Grouping::Links | Grouping::Auto => {

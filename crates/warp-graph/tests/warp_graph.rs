@@ -1502,3 +1502,124 @@ fn synthetic_cameras(n: usize) -> Cameras {
         extra: Default::default(),
     }
 }
+
+// ---------------------------------------------------------------------------------------
+// View-pair shards (issue 21).
+
+/// A tiny synth scene with ground-truth Gaussians: the job of a run over it.
+fn shard_scene(dir: &std::path::Path) -> warp_graph::job::Job {
+    let mut config = synth::Config::preset(synth::Preset::Tiny, 3);
+    config.views = 5;
+    config.gaussians = 3000;
+    synth::generate(&config, dir).unwrap();
+    let file = |name: &str| dir.join(name);
+    warp_graph::job::Job {
+        masks: file("masks.safetensors"),
+        matches: file("matches.safetensors"),
+        cameras: Some(file("cameras.safetensors")),
+        gaussians: Some(file("gt/gaussians.safetensors")),
+        out: file("proposals.safetensors"),
+    }
+}
+
+/// Evidence of consecutive view-pair ranges, merged in any order, equals the evidence of
+/// all pairs (links with bit-identical scores, counters), and groups into the proposals
+/// of one run, with both groupings.
+#[test]
+fn evidence_of_pair_ranges_merges_into_the_evidence_of_one_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let job = shard_scene(dir.path());
+    let masks = Masks::read(&job.masks).unwrap();
+    let matches = Matches::read(&job.matches).unwrap();
+    let cameras = Cameras::read(job.cameras.as_ref().unwrap()).unwrap();
+    let gaussians = Gaussians::read(job.gaussians.as_ref().unwrap()).unwrap();
+    for grouping in [Grouping::Consensus, Grouping::Links] {
+        let params = Params {
+            grouping,
+            ..Params::default()
+        };
+        let inputs = Inputs::new(&masks, &matches)
+            .with_cameras(&cameras)
+            .with_gaussians(&gaussians);
+        let a = Association::new(inputs, &params).unwrap();
+        let t = a.num_view_pairs();
+        assert!(t >= 4, "{t} view pairs");
+        let whole = a.pair_evidence(0..t, &|_, _| {}).unwrap();
+        assert!(!whole.edges.is_empty());
+        let cuts = [0, 1, 1, t / 2, t];
+        let mut shards: Vec<(String, warp_graph::Evidence)> = cuts
+            .windows(2)
+            .map(|w| {
+                let e = a.pair_evidence(w[0]..w[1], &|_, _| {}).unwrap();
+                (format!("{}..{}", w[0], w[1]), e)
+            })
+            .collect();
+        shards.reverse();
+        let merged = warp_graph::Evidence::merge(shards, t).unwrap();
+        assert_eq!(merged, whole);
+        let bits = |e: &warp_graph::Evidence| -> Vec<u64> {
+            e.edges.iter().map(|l| l.iou.to_bits()).collect()
+        };
+        assert_eq!(bits(&merged), bits(&whole));
+        let one = a.run(&|_, _| {}).unwrap();
+        let grouped = a.group(&merged).unwrap();
+        assert_eq!(grouped.proposals, one.proposals);
+        assert_eq!(grouped.report, one.report);
+        assert_eq!(grouped.edges, one.edges);
+        assert!(a.pair_evidence(0..t + 1, &|_, _| {}).is_err());
+        assert!(a.group(&a.pair_evidence(0..1, &|_, _| {}).unwrap()).is_err());
+    }
+}
+
+/// `run_shard` files merged by `run_merged` write the bytes of `run`; a missing range, a
+/// range in two shards and a shard of other parameters or other Gaussians are refused
+/// with the cause named, and nothing is written.
+#[test]
+fn shard_files_merge_into_the_proposals_file_of_one_run() {
+    use warp_graph::job::{self, JobError};
+    let dir = tempfile::tempdir().unwrap();
+    let job = shard_scene(dir.path());
+    let params = Params::default();
+    job::run(&job, &params, &|_, _| {}).unwrap();
+    let reference = std::fs::read(&job.out).unwrap();
+    std::fs::remove_file(&job.out).unwrap();
+    let shard = |range: std::ops::Range<usize>, params: &Params, job: &job::Job| {
+        let path = dir
+            .path()
+            .join(format!("s{}_{}_{}.safetensors", range.start, range.end, params.tau_iou));
+        let report = job::run_shard(job, params, range, &path, &|_, _| {}).unwrap();
+        (path, report.view_pairs)
+    };
+    let (probe, t) = shard(0..0, &params, &job);
+    let (a, _) = shard(0..2, &params, &job);
+    let (b, _) = shard(2..t, &params, &job);
+    let merged = job::run_merged(&job, &params, &[b.clone(), probe, a.clone()]).unwrap();
+    assert_eq!(std::fs::read(&job.out).unwrap(), reference);
+    assert_eq!(merged.out, job.out);
+    std::fs::remove_file(&job.out).unwrap();
+
+    let refused = |partials: &[std::path::PathBuf], want: &str| {
+        let err = job::run_merged(&job, &params, partials).unwrap_err();
+        assert!(matches!(err, JobError::Shards(_)), "{err}");
+        assert!(err.to_string().contains(want), "{err}");
+        assert!(!job.out.exists());
+    };
+    refused(std::slice::from_ref(&b), "view pairs 0..2");
+    let (overlap, _) = shard(1..3, &params, &job);
+    refused(&[a.clone(), overlap, b.clone()], "in two shards");
+    let other = Params {
+        tau_iou: 0.3,
+        ..params
+    };
+    let (foreign, _) = shard(0..2, &other, &job);
+    refused(&[foreign, b.clone()], "input_params");
+    let mut moved = job.clone();
+    moved.gaussians = Some(dir.path().join("gt/other_gaussians.safetensors"));
+    let mut g = Gaussians::read(job.gaussians.as_ref().unwrap()).unwrap();
+    let mut means = g.means.to_vec();
+    means[0][0] += 0.001;
+    g.means = means.into();
+    g.write(moved.gaussians.as_ref().unwrap()).unwrap();
+    let (shifted, _) = shard(0..2, &params, &moved);
+    refused(&[shifted, b], "input_gaussians");
+}
