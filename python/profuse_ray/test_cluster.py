@@ -3,12 +3,14 @@
     PROFUSE_BIN_DIR=target/debug python3 python/profuse_ray/test_cluster.py
 
 1. `profuse run` on a synth scene (tiny preset, 8 views) gives the reference outputs.
-2. The driver on a fresh copy of the scene, 3 nodes, shards of 2 views: every output file
-   byte-identical to the reference (stage records, summaries and the shard folder aside).
-3. Again on a fresh copy, with every shard task held at its start; one held worker process
-   is killed with SIGKILL; Ray retries its task on a new worker: byte-identical again, and
-   that shard ran twice.
-4. A rerun on the finished output skips every shard.
+2. The driver on a fresh copy of the scene, 3 nodes, warp-graph shards of 8 view pairs and
+   fuse shards of 2 views: every output file byte-identical to the reference (stage
+   records, summaries and the shard folder aside).
+3. A rerun on the finished output skips every shard.
+4. Again on a fresh copy, with every shard task held at its start; one held warp-graph
+   worker process and then one held fuse worker process are killed with SIGKILL; Ray
+   retries their tasks on new workers: byte-identical again, and each of the two shards
+   ran twice.
 5. `shard_ranges` covers the views exactly, and refuses nonsense.
 Run by the workspace test `ray_driver_is_byte_identical_to_profuse_run` (tests/e2e.rs).
 """
@@ -80,6 +82,7 @@ def plan(scene: Path) -> driver.Plan:
         out=scene / "out",
         bin_dir=BIN,
         shard_views=2,
+        shard_pairs=8,
         sets=SETS,
         max_retries=3,
         threads_per_task=1,
@@ -87,11 +90,12 @@ def plan(scene: Path) -> driver.Plan:
     )
 
 
-def kill_one_held_worker(hold: Path, killed: list) -> None:
-    """Waits for a held shard task, SIGKILLs its worker process, then releases all."""
+def kill_one_held_worker(hold: Path, stage: str, killed: list) -> None:
+    """Waits for a held shard task of `stage`, SIGKILLs its worker process, then releases
+    that stage's tasks."""
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
-        held = sorted(hold.glob("*_*.*"))
+        held = sorted(hold.glob(f"{stage}_*_*.*"))
         if held:
             name = held[0].name
             pid = int(name.rsplit(".", 1)[1])
@@ -100,7 +104,12 @@ def kill_one_held_worker(hold: Path, killed: list) -> None:
             break
         time.sleep(0.05)
     time.sleep(1.0)
-    (hold / "release").write_text("")
+    (hold / f"release-{stage}").write_text("")
+
+
+def kill_a_warp_then_a_fuse_worker(hold: Path, killed: list) -> None:
+    kill_one_held_worker(hold, "warp", killed)
+    kill_one_held_worker(hold, "fuse", killed)
 
 
 def main() -> int:
@@ -142,11 +151,15 @@ def main() -> int:
             assert got == expected, diff(expected, got)
             shards = summary["ray"]["shards"]
             assert [s["views"] for s in shards] == [[0, 2], [2, 4], [4, 6], [6, 8]], shards
-            assert not any(s["skipped"] for s in shards)
-            print(f"ok: 3 nodes, {len(shards)} shards, {len(got)} files byte-identical")
+            warp = summary["ray"]["warp_shards"]
+            assert len(warp) >= 2 and warp[0]["pairs"][0] == 0, warp
+            assert all(a["pairs"][1] == b["pairs"][0] for a, b in zip(warp, warp[1:])), warp
+            assert not any(s["skipped"] for s in shards + warp)
+            print(f"ok: 3 nodes, {len(warp)} warp-graph + {len(shards)} fuse shards, {len(got)} files byte-identical")
 
             again = driver.run_pipeline(plan(plain))
-            assert all(s["skipped"] for s in again["ray"]["shards"]), again["ray"]["shards"]
+            again_shards = again["ray"]["shards"] + again["ray"]["warp_shards"]
+            assert all(s["skipped"] for s in again_shards), again_shards
             assert digest_tree(plain / "out") == expected
             print("ok: a rerun skips every finished shard")
 
@@ -154,17 +167,19 @@ def main() -> int:
                 p.unlink()
             chaos = fresh(scene)
             killed = []
-            killer = threading.Thread(target=kill_one_held_worker, args=(hold, killed))
+            killer = threading.Thread(target=kill_a_warp_then_a_fuse_worker, args=(hold, killed))
             killer.start()
             summary = driver.run_pipeline(plan(chaos))
             killer.join()
-            assert len(killed) == 1, killed
-            shard = killed[0].split(".")[0]
-            runs = [p.name for p in hold.glob(f"{shard}.*")]
-            assert len(runs) == 2, f"shard {shard} should have run twice (killed, retried): {runs}"
+            assert len(killed) == 2, killed
+            for name in killed:
+                shard = name.split(".")[0]
+                runs = [p.name for p in hold.glob(f"{shard}.*")]
+                assert len(runs) == 2, f"shard {shard} should have run twice (killed, retried): {runs}"
             got = digest_tree(chaos / "out")
             assert got == expected, diff(expected, got)
-            print(f"ok: worker of shard {shard} killed (pid {killed[0].split('.')[1]}), retried, byte-identical")
+            shown = ", ".join(f"{n.split('.')[0]} (pid {n.split('.')[1]})" for n in killed)
+            print(f"ok: workers of shards {shown} killed, retried, byte-identical")
         finally:
             ray.shutdown()
             cluster.shutdown()

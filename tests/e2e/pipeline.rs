@@ -217,15 +217,7 @@ fn a_run_split_into_fuse_shards_equals_one_run_byte_for_byte() {
 
     let tail = profuse_run(&scene, &["--fuse-partials", &b, &a]);
     assert_succeeded(&tail);
-    let split = files(&scene.join("out"));
-    assert_eq!(
-        reference.keys().collect::<Vec<_>>(),
-        split.keys().collect::<Vec<_>>(),
-        "different files"
-    );
-    for (name, bytes) in &reference {
-        assert!(&split[name] == bytes, "{} differs", name.display());
-    }
+    assert_same_files(&reference, &files(&scene.join("out")));
 
     // A shard made with another K is not summed into this run's features.
     let other = shards.join("k20.safetensors");
@@ -255,6 +247,97 @@ fn a_run_split_into_fuse_shards_equals_one_run_byte_for_byte() {
     let bad = profuse_run(&scene, &["--until", "nowhere"]);
     assert_eq!(bad.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&bad.stderr).contains("stages: gs-init"));
+}
+
+/// The same files with the same bytes.
+fn assert_same_files(reference: &BTreeMap<PathBuf, Vec<u8>>, split: &BTreeMap<PathBuf, Vec<u8>>) {
+    assert_eq!(
+        reference.keys().collect::<Vec<_>>(),
+        split.keys().collect::<Vec<_>>(),
+        "different files"
+    );
+    for (name, bytes) in reference {
+        assert!(&split[name] == bytes, "{} differs", name.display());
+    }
+}
+
+/// `profuse warp-shard` over `pairs`, with extra arguments; returns the file and the
+/// report.
+fn warp_shard(
+    scene: &Path,
+    dir: &Path,
+    pairs: &str,
+    extra: &[&str],
+) -> (String, serde_json::Value) {
+    let path = dir.join(format!(
+        "pairs_{}{}.safetensors",
+        pairs.replace("..", "_"),
+        extra.len()
+    ));
+    let mut args: Vec<&std::ffi::OsStr> = vec![
+        "warp-shard".as_ref(),
+        scene.as_os_str(),
+        "--pairs".as_ref(),
+        pairs.as_ref(),
+        "--partial-out".as_ref(),
+        path.as_os_str(),
+        "--set".as_ref(),
+        "pq.m=16".as_ref(),
+        "--quiet".as_ref(),
+    ];
+    args.extend(extra.iter().map(std::ffi::OsStr::new));
+    let out = run_tool(env!("CARGO_BIN_EXE_profuse"), &args);
+    assert_succeeded(&out);
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["partial_out"], path.to_str().unwrap());
+    (path.to_str().unwrap().to_string(), report)
+}
+
+/// warp-graph split over view pairs (issue 21): `--until gs-init`, `warp-shard` per pair
+/// range (`0..0` tells the number of view pairs), then `--warp-partials`: the same bytes
+/// as one `profuse run`, every file. Missing or foreign shards are refused, naming the
+/// cause.
+#[test]
+fn a_run_split_into_warp_shards_equals_one_run_byte_for_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    tiny_scene(&scene);
+    assert_succeeded(&profuse_run(&scene, &[]));
+    let reference = files(&scene.join("out"));
+    std::fs::remove_dir_all(scene.join("out")).unwrap();
+
+    assert_succeeded(&profuse_run(&scene, &["--until", "gs-init"]));
+    let shards = dir.path().join("shards");
+    std::fs::create_dir(&shards).unwrap();
+    let (probe, report) = warp_shard(&scene, &shards, "0..0", &[]);
+    let t = report["view_pairs"].as_u64().unwrap();
+    assert!(t >= 2, "{t} view pairs");
+    assert_eq!(report["edges"], 0);
+    let (a, _) = warp_shard(&scene, &shards, "0..1", &[]);
+    let (b, _) = warp_shard(&scene, &shards, &format!("1..{t}"), &[]);
+
+    let missing = profuse_run(&scene, &["--until", "warp-graph", "--warp-partials", &b]);
+    assert_eq!(missing.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&missing.stderr);
+    assert!(
+        err.contains("warp-graph") && err.contains("in no shard"),
+        "{err}"
+    );
+
+    let (foreign, _) = warp_shard(
+        &scene,
+        &shards,
+        "0..1",
+        &["--set", "warp_graph.tau_iou=0.3"],
+    );
+    let refused = profuse_run(&scene, &["--warp-partials", &foreign, &b]);
+    assert_eq!(refused.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("input_params"), "{err}");
+
+    let tail = profuse_run(&scene, &["--warp-partials", &b, &probe, &a]);
+    assert_succeeded(&tail);
+    assert_same_files(&reference, &files(&scene.join("out")));
 }
 
 /// The Ray driver (python/profuse_ray) on a local 3-node Ray cluster: byte-identical to

@@ -197,3 +197,20 @@ pub fn check_outputs<'a>(
     }
     Ok(())
 }
+
+/// A half-open range `A..B` of `what` (views, view pairs) from the command line, A <= B.
+pub fn half_open_range(s: &str, what: &str) -> Result<std::ops::Range<usize>, String> {
+    let (a, b) = s
+        .split_once("..")
+        .ok_or_else(|| format!("expected A..B (half-open {what} range), got {s:?}"))?;
+    let parse = |x: &str| {
+        x.trim()
+            .parse::<usize>()
+            .map_err(|e| format!("{x:?} in {s:?}: {e}"))
+    };
+    let (a, b) = (parse(a)?, parse(b)?);
+    if a > b {
+        return Err(format!("{what} range {s:?}: A must not exceed B"));
+    }
+    Ok(a..b)
+}

@@ -52,6 +52,6 @@ pub mod sweep;
 
 pub use error::{PipelineError, Result};
 pub use run::{
-    fuse_shard, run, Event, Paths, RegisteredMasks, RunOptions, StageLine, StageName, Summary,
-    SCANNET_SETS,
+    fuse_shard, run, warp_shard, Event, Paths, RegisteredMasks, RunOptions, StageLine, StageName,
+    Summary, SCANNET_SETS,
 };

@@ -40,6 +40,11 @@ pub struct RunOptions {
     /// features are byte-identical to an unsharded fuse
     /// ([`profuse_fuse::job::run_merged`], which refuses shards of other inputs).
     pub fuse_partials: Vec<PathBuf>,
+    /// Finish the warp-graph stage from the evidence of disjoint view-pair shards
+    /// (written by [`warp_shard`]) instead of computing every view pair: the proposals
+    /// are byte-identical to an unsharded warp-graph ([`warp_graph::job::run_merged`],
+    /// which refuses shards of other inputs or parameters).
+    pub warp_partials: Vec<PathBuf>,
 }
 
 /// The stages of [`run`], in order, for [`RunOptions::until`].
@@ -441,7 +446,7 @@ fn run_stages(
     if !config.fuse.no_proposals {
         lines.push(match &opts.proposals {
             Some(given) => given_proposals_stage(runner, p, given)?,
-            None => warp_graph_stage(runner, config, p)?,
+            None => warp_graph_stage(runner, config, p, &opts.warp_partials)?,
         });
     }
     if stop_after(StageName::WarpGraph) {
@@ -576,7 +581,12 @@ fn gs_refine_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLi
 }
 
 /// warp-graph: masks + matches (+ cameras, gaussians for visibility) -> proposals.
-fn warp_graph_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine> {
+fn warp_graph_stage(
+    r: &Runner<'_>,
+    config: &Config,
+    p: &Paths,
+    partials: &[PathBuf],
+) -> Result<StageLine> {
     if p.sparse {
         return Err(PipelineError::MissingInput {
             stage: "warp-graph",
@@ -596,18 +606,68 @@ fn warp_graph_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageL
         ],
         vec![p.proposals.clone()],
         || {
-            let job = warp_graph::job::Job {
-                masks: p.masks.clone(),
-                matches: p.matches.clone(),
-                cameras: Some(p.cameras.clone()),
-                gaussians: Some(p.gaussians.clone()),
-                out: p.proposals.clone(),
-            };
-            let report = warp_graph::job::run(&job, &config.warp_graph, &|d, t| r.progress(d, t))
-                .map_err(stage_err("warp-graph"))?;
+            let job = warp_graph_job(p);
+            let report = if partials.is_empty() {
+                warp_graph::job::run(&job, &config.warp_graph, &|d, t| r.progress(d, t))
+            } else {
+                warp_graph::job::run_merged(&job, &config.warp_graph, partials)
+            }
+            .map_err(stage_err("warp-graph"))?;
             Ok(to_json(&report))
         },
     )
+}
+
+/// The warp-graph job of a run: its masks, matches, cameras and Gaussians.
+fn warp_graph_job(p: &Paths) -> warp_graph::job::Job {
+    warp_graph::job::Job {
+        masks: p.masks.clone(),
+        matches: p.matches.clone(),
+        cameras: Some(p.cameras.clone()),
+        gaussians: Some(p.gaussians.clone()),
+        out: p.proposals.clone(),
+    }
+}
+
+/// One view-pair shard of the warp-graph stage of a run: computes the mask-pair evidence
+/// of view pairs `pairs` (of the run's list, ascending (i, j)) from the scene and the
+/// run's Gaussians (`out_dir`, written by a run that reached gs-init, or gs-refine when
+/// it is on) with the run's configuration, and writes it to `partial_out` (atomically)
+/// for [`RunOptions::warp_partials`]. Takes no lock: shards run in parallel, anywhere the
+/// files are visible. The report's `view_pairs` is the run's T.
+pub fn warp_shard(
+    scene: &Path,
+    out_dir: &Path,
+    config: &Config,
+    pairs: std::ops::Range<usize>,
+    partial_out: &Path,
+    on_pair: &(dyn Fn(usize, usize) + Sync),
+) -> Result<warp_graph::job::ShardReport> {
+    config.validate()?;
+    if config.fuse.no_proposals {
+        return Err(PipelineError::Stage {
+            stage: "warp-graph",
+            source: "the configuration sets fuse.no_proposals, so a run has no warp-graph \
+                     stage to shard"
+                .into(),
+        });
+    }
+    let p = Paths::new(scene, out_dir, false).with_refinement(config.gs_refine.iterations > 0);
+    check_input("warp-graph", &p.masks, "masks file")?;
+    check_input(
+        "warp-graph",
+        &p.gaussians,
+        "gaussians of a run that reached gs-init (gs-refine when it is on)",
+    )?;
+    profuse_formats::output::check_output_file(partial_out)?;
+    warp_graph::job::run_shard(
+        &warp_graph_job(&p),
+        &config.warp_graph,
+        pairs,
+        partial_out,
+        on_pair,
+    )
+    .map_err(stage_err("warp-graph"))
 }
 
 /// proposals: a given proposals file (instead of warp-graph) -> out/proposals, after

@@ -32,5 +32,6 @@ pub mod preview;
 pub mod rle;
 pub mod runtime;
 pub mod sam;
+pub mod shard;
 
 pub use error::{PrepError, Result};

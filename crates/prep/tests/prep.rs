@@ -578,6 +578,19 @@ mod algorithms {
     }
 }
 
+/// Cameras of fox photos 0001 and 0002 (1080 x 1920).
+fn two_fox_cameras() -> profuse_formats::Cameras {
+    profuse_formats::Cameras {
+        image_names: vec!["0001.jpg".into(), "0002.jpg".into()],
+        image_size: vec![[1080u32, 1920]; 2].into(),
+        intrinsics: vec![[1375.0, 1375.0, 540.0, 960.0]; 2].into(),
+        world_to_camera: vec![[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]; 2]
+            .into(),
+        distortion: None,
+        extra: Default::default(),
+    }
+}
+
 /// The jobs end to end on two fox views (one held out): `run_masks` at a 4 x 4 grid, then
 /// `sam_features` on its output gives the same descriptors (same embedding and pooling),
 /// `clip_features` with the tiny model gives unit 8-d rows, and the file round-trips.
@@ -586,15 +599,7 @@ fn masks_and_features_jobs_on_fox_views() {
     let (Some(env), Some(fox)) = (runtime(), fox()) else {
         return;
     };
-    let cameras = profuse_formats::Cameras {
-        image_names: vec!["0001.jpg".into(), "0002.jpg".into()],
-        image_size: vec![[1080u32, 1920]; 2].into(),
-        intrinsics: vec![[1375.0, 1375.0, 540.0, 960.0]; 2].into(),
-        world_to_camera: vec![[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]; 2]
-            .into(),
-        distortion: None,
-        extra: Default::default(),
-    };
+    let cameras = two_fox_cameras();
     let mut sam = Sam::open(env, &fox.encoder, &fox.decoder, 2).unwrap();
     let params = AmgParams {
         points_per_side: 4,
@@ -639,4 +644,122 @@ fn masks_and_features_jobs_on_fox_views() {
         with_clip.extra.get("feature").map(String::as_str),
         Some("clip_image")
     );
+}
+
+/// Three views of a 2 x 3 grid with 2, 0 and 1 masks, U16 labels, unit 2-d features.
+fn three_view_masks() -> profuse_formats::Masks {
+    let n = u16::MAX;
+    profuse_formats::Masks {
+        view_names: vec!["a.png".into(), "b.png".into(), "c.png".into()],
+        width: 3,
+        height: 2,
+        labels: profuse_formats::Labels::U16(
+            vec![0, 0, 1, n, 1, 1, n, n, n, n, n, n, 0, 0, 0, n, n, 0].into(),
+        ),
+        mask_offsets: vec![0, 2, 2, 3].into(),
+        features: profuse_formats::Floats::F32(vec![1.0, 0.0, 0.6, 0.8, 0.0, -1.0].into()),
+        dim: 2,
+        extra: [("feature".to_string(), "test".to_string())].into(),
+    }
+}
+
+/// Shards restricted to view ranges (an empty one among them) merge back, in any order,
+/// into the bytes of the whole file; a gap, an overlap, an unmarked file and a shard of
+/// other parameters are refused, naming the shard.
+#[test]
+fn view_shards_of_a_masks_file_merge_back_byte_for_byte() {
+    use profuse_prep::shard::{mark, merge, restrict};
+    let whole = three_view_masks();
+    let shard = |r: std::ops::Range<usize>| {
+        let mut s = restrict(&whole, r.clone()).unwrap();
+        mark(&mut s, &r);
+        (format!("{}..{}", r.start, r.end), s)
+    };
+    let (a, empty, b) = (shard(0..1), shard(1..1), shard(1..3));
+    assert_eq!(a.1.masks_in_view(0), 2);
+    assert_eq!((a.1.masks_in_view(2), b.1.masks_in_view(0)), (0, 0));
+    assert_eq!(b.1.features.to_f32_vec(), vec![0.0, -1.0]);
+    let merged = merge(&[b.clone(), empty.clone(), a.clone()]).unwrap();
+    assert_eq!(merged, whole);
+    let dir = tempfile::tempdir().unwrap();
+    let (p, q) = (dir.path().join("w"), dir.path().join("m"));
+    profuse_formats::FileKind::write(&whole, &p).unwrap();
+    profuse_formats::FileKind::write(&merged, &q).unwrap();
+    assert_eq!(std::fs::read(&p).unwrap(), std::fs::read(&q).unwrap());
+
+    let refused = |shards: &[(String, profuse_formats::Masks)], want: &str| {
+        let err = merge(shards).unwrap_err().to_string();
+        assert!(err.contains(want), "{err}");
+    };
+    refused(std::slice::from_ref(&b), "views 0..1 are in no shard");
+    refused(&[a.clone(), shard(0..2), b.clone()], "in two shards");
+    refused(
+        &[a.clone(), ("plain".into(), whole.clone())],
+        "prep_shard_views",
+    );
+    let mut other = b.clone();
+    other.1.extra.insert("feature".into(), "clip_image".into());
+    refused(&[a, other], "metadata");
+    assert!(restrict(&whole, 2..4).is_err());
+}
+
+/// `prep masks` and `prep features` split into view shards equal one run byte for byte
+/// (two fox views, a 4 x 4 prompt grid, 128-cell label maps, the tiny CLIP model).
+#[test]
+fn masks_and_features_view_shards_equal_one_run() {
+    use profuse_prep::shard::{mark, merge, restrict};
+    let (Some(env), Some(fox)) = (runtime(), fox()) else {
+        return;
+    };
+    let cameras = two_fox_cameras();
+    let mut sam = Sam::open(env, &fox.encoder, &fox.decoder, 2).unwrap();
+    let masks_of = |sam: &mut Sam, views: Option<Vec<usize>>| {
+        let job = profuse_prep::masks::MasksJob {
+            cameras: &cameras,
+            images: &fox.images,
+            params: AmgParams {
+                points_per_side: 4,
+                ..AmgParams::default()
+            },
+            mask_size: 128,
+            views,
+        };
+        profuse_prep::masks::run_masks(sam, &job, &|_, _| {})
+            .unwrap()
+            .0
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = |m: &profuse_formats::Masks, name: &str| {
+        let p = dir.path().join(name);
+        profuse_formats::FileKind::write(m, &p).unwrap();
+        std::fs::read(p).unwrap()
+    };
+    let whole = masks_of(&mut sam, None);
+    assert!(whole.masks_in_view(0) >= 1 && whole.masks_in_view(1) >= 1);
+    let mut shards = Vec::new();
+    for r in [1..2, 0..1] {
+        let mut s = masks_of(&mut sam, Some(r.clone().collect()));
+        mark(&mut s, &r);
+        shards.push((format!("{r:?}"), s));
+    }
+    let merged = merge(&shards).unwrap();
+    assert_eq!(bytes(&merged, "merged"), bytes(&whole, "whole"));
+
+    // Descriptors from the tiny CLIP model (SAM's encoder again would double the time).
+    python(&["tiny-clip", dir.path().to_str().unwrap()]);
+    let mut clip = ClipModel::open(env, &dir.path().join("clip_image.onnx"), false, 1).unwrap();
+    let mut features = |m: &profuse_formats::Masks| {
+        profuse_prep::features::clip_features(&mut clip, m, &cameras, &fox.images, &|_, _| {})
+            .unwrap()
+            .0
+    };
+    let described = features(&whole);
+    let mut shards = Vec::new();
+    for r in [0..1, 1..2] {
+        let mut s = features(&restrict(&whole, r.clone()).unwrap());
+        mark(&mut s, &r);
+        shards.push((format!("{r:?}"), s));
+    }
+    let merged = merge(&shards).unwrap();
+    assert_eq!(bytes(&merged, "fmerged"), bytes(&described, "fwhole"));
 }

@@ -1567,7 +1567,9 @@ fn evidence_of_pair_ranges_merges_into_the_evidence_of_one_run() {
         assert_eq!(grouped.report, one.report);
         assert_eq!(grouped.edges, one.edges);
         assert!(a.pair_evidence(0..t + 1, &|_, _| {}).is_err());
-        assert!(a.group(&a.pair_evidence(0..1, &|_, _| {}).unwrap()).is_err());
+        assert!(a
+            .group(&a.pair_evidence(0..1, &|_, _| {}).unwrap())
+            .is_err());
     }
 }
 
@@ -1584,9 +1586,10 @@ fn shard_files_merge_into_the_proposals_file_of_one_run() {
     let reference = std::fs::read(&job.out).unwrap();
     std::fs::remove_file(&job.out).unwrap();
     let shard = |range: std::ops::Range<usize>, params: &Params, job: &job::Job| {
-        let path = dir
-            .path()
-            .join(format!("s{}_{}_{}.safetensors", range.start, range.end, params.tau_iou));
+        let path = dir.path().join(format!(
+            "s{}_{}_{}.safetensors",
+            range.start, range.end, params.tau_iou
+        ));
         let report = job::run_shard(job, params, range, &path, &|_, _| {}).unwrap();
         (path, report.view_pairs)
     };

@@ -65,6 +65,18 @@ pub enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Stitch masks files written by `prep masks --shard` or `prep features --shard` over
+    /// view ranges that cover every view once into the file of one unsharded run (byte for
+    /// byte); shards of other runs (other views, grid, parameters, feature kind) are
+    /// refused.
+    Merge {
+        /// The shard files, in any order.
+        #[arg(required = true)]
+        shards: Vec<PathBuf>,
+        /// The masks file to write.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Dense warps from geometry, for scenes with only sparse matches: render each view's
     /// depth from the Gaussians and keep grid cells whose depth agrees in the other view
     /// (the same command as `warp-graph warps`); writes a matches file for warp-graph.
@@ -109,8 +121,12 @@ pub struct MasksArgs {
     pub mask_size: usize,
     /// Views to segment (comma separated, 0-based); the others get no masks, e.g. views
     /// held out of the pipeline. Default: all.
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', conflicts_with = "shard")]
     pub views: Option<Vec<usize>>,
+    /// Segment only views A..B (half-open) and mark the file as that shard, for `prep
+    /// merge` (shards covering every view merge into the file of one run, byte for byte).
+    #[arg(long, value_name = "A..B", value_parser = shard_range)]
+    pub shard: Option<std::ops::Range<usize>>,
     /// The masks file to write (profuse.masks).
     #[arg(long)]
     pub out: PathBuf,
@@ -140,7 +156,16 @@ pub struct FeaturesArgs {
     /// SAM image encoder for --sam-embedding.
     #[arg(long)]
     pub encoder: Option<PathBuf>,
+    /// Describe only the masks of views A..B (half-open) and write them as that shard
+    /// (the other views without masks), for `prep merge`.
+    #[arg(long, value_name = "A..B", value_parser = shard_range)]
+    pub shard: Option<std::ops::Range<usize>>,
     /// The masks file to write.
     #[arg(long)]
     pub out: PathBuf,
+}
+
+/// A half-open view range `A..B`, A <= B.
+fn shard_range(s: &str) -> Result<std::ops::Range<usize>, String> {
+    profuse_tools::half_open_range(s, "view")
 }

@@ -18,6 +18,7 @@ use profuse_prep::masks::{run_masks, MasksJob};
 use profuse_prep::preview::overlay;
 use profuse_prep::runtime::{environment, find_library, Environment};
 use profuse_prep::sam::Sam;
+use profuse_prep::shard;
 use profuse_tools::{chatty, check_outputs, progress_bar, run, write_png, BoxError};
 
 mod args;
@@ -41,6 +42,7 @@ fn main() -> ExitCode {
             texts,
             out,
         } => prompts(env()?, &clip_text, &texts, &out, threads),
+        Command::Merge { shards, out } => merge(&shards, &out),
         Command::Warps(a) => profuse_tools::warps::run(a, show),
     })
 }
@@ -78,17 +80,29 @@ fn masks(
         min_region_area: a.min_region_area,
         box_scales,
     };
+    if let Some(r) = a.shard.as_ref().filter(|r| r.end > cameras.len()) {
+        return Err(format!(
+            "--shard {}..{}: the cameras file has {} views",
+            r.start,
+            r.end,
+            cameras.len()
+        )
+        .into());
+    }
     let mut sam = Sam::open(env()?, &a.encoder, &a.decoder, threads)?;
     let job = MasksJob {
         cameras: &cameras,
         images: &a.scene.images,
         params,
         mask_size: a.mask_size,
-        views: a.views,
+        views: a.shard.clone().map(|r| r.collect()).or(a.views),
     };
     let bar = progress_bar(show, 0, "prep masks", "views");
-    let (masks, report) = run_masks(&mut sam, &job, &bar_progress(&bar))?;
+    let (mut masks, report) = run_masks(&mut sam, &job, &bar_progress(&bar))?;
     bar.finish_and_clear();
+    if let Some(r) = &a.shard {
+        shard::mark(&mut masks, r);
+    }
     masks.write(&a.out)?;
     if let Some(dir) = a.preview {
         write_previews(&dir, &masks, &cameras, &a.scene.images)?;
@@ -105,7 +119,10 @@ fn features(
 ) -> Result<serde_json::Value, BoxError> {
     check_outputs([a.out.as_path()])?;
     let cameras = Cameras::read(&a.scene.cameras)?;
-    let input = Masks::read(&a.masks)?;
+    let mut input = Masks::read(&a.masks)?;
+    if let Some(r) = &a.shard {
+        input = shard::restrict(&input, r.clone())?;
+    }
     let bar = progress_bar(show, 0, "prep features", "views");
     let progress = bar_progress(&bar);
     let (result, report) = match (a.clip_image, a.encoder) {
@@ -120,8 +137,29 @@ fn features(
         _ => return Err("give --clip-image MODEL or --sam-embedding --encoder MODEL".into()),
     };
     bar.finish_and_clear();
+    let mut result = result;
+    if let Some(r) = &a.shard {
+        shard::mark(&mut result, r);
+    }
     result.write(&a.out)?;
     Ok(serde_json::to_value(report)?)
+}
+
+/// `prep merge`.
+fn merge(shards: &[std::path::PathBuf], out: &Path) -> Result<serde_json::Value, BoxError> {
+    check_outputs([out])?;
+    let read = shards
+        .iter()
+        .map(|p| Ok((p.display().to_string(), Masks::read(p)?)))
+        .collect::<Result<Vec<_>, BoxError>>()?;
+    let merged = shard::merge(&read)?;
+    merged.write(out)?;
+    Ok(serde_json::json!({
+        "shards": shards.len(),
+        "views": merged.num_views(),
+        "masks": merged.num_masks(),
+        "out": out.display().to_string(),
+    }))
 }
 
 /// `prep prompts`.

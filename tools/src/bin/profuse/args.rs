@@ -51,6 +51,31 @@ pub enum Command {
         /// proposals, masks or fuse parameters are refused.
         #[arg(long, value_name = "FILE", num_args = 1..)]
         fuse_partials: Vec<PathBuf>,
+        /// Finish the warp-graph stage from these evidence files (written by `profuse
+        /// warp-shard` over disjoint view-pair ranges that together cover every view pair)
+        /// instead of computing every pair: byte-identical proposals. Shards made from
+        /// other masks, matches, cameras, Gaussians or warp_graph parameters are refused.
+        #[arg(long, value_name = "FILE", num_args = 1..)]
+        warp_partials: Vec<PathBuf>,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// One view-pair shard of a run's warp-graph stage: compute the mask-pair evidence of
+    /// view pairs A..B (half-open; the run's unordered view pairs in ascending (i, j)
+    /// order) from SCENE and the Gaussians under --out-dir (from `profuse run --until
+    /// gs-refine`) with the run's configuration, and write it to --partial-out for
+    /// `profuse run --warp-partials`. Takes no lock and writes only --partial-out
+    /// (atomically). Prints a JSON report on stdout whose `view_pairs` is the run's number
+    /// of view pairs T (`--pairs 0..0` writes an empty shard and tells T).
+    WarpShard {
+        /// The scene directory.
+        scene: PathBuf,
+        /// The view pairs to compute, `A..B` (half-open, B <= T).
+        #[arg(long, value_name = "A..B", value_parser = pair_range)]
+        pairs: std::ops::Range<usize>,
+        /// The evidence file to write (profuse.warp_partial).
+        #[arg(long, value_name = "FILE")]
+        partial_out: PathBuf,
         #[command(flatten)]
         common: Common,
     },
@@ -141,19 +166,16 @@ pub enum Command {
 
 /// `A..B` with A < B.
 fn view_range(s: &str) -> Result<std::ops::Range<usize>, String> {
-    let (a, b) = s
-        .split_once("..")
-        .ok_or_else(|| format!("expected A..B (half-open view range), got {s:?}"))?;
-    let parse = |x: &str| {
-        x.trim()
-            .parse::<usize>()
-            .map_err(|e| format!("{x:?} in {s:?}: {e}"))
-    };
-    let (a, b) = (parse(a)?, parse(b)?);
-    if a >= b {
+    let r = profuse_tools::half_open_range(s, "view")?;
+    if r.is_empty() {
         return Err(format!("empty view range {s:?}: A must be below B"));
     }
-    Ok(a..b)
+    Ok(r)
+}
+
+/// A view-pair range; `A..A` (empty) is allowed: it asks for T alone.
+fn pair_range(s: &str) -> Result<std::ops::Range<usize>, String> {
+    profuse_tools::half_open_range(s, "view-pair")
 }
 
 /// The synth presets an experiment runs on (see the argument help).

@@ -29,12 +29,14 @@ fn main() -> ExitCode {
             proposals,
             until,
             fuse_partials,
+            warp_partials,
             common,
         } => run(|| {
             let opts = RunOptions {
                 proposals,
                 until,
                 fuse_partials,
+                warp_partials,
                 ..run_options(&common)
             };
             run_scene(&scene, &opts, &common)
@@ -45,6 +47,12 @@ fn main() -> ExitCode {
             partial_out,
             common,
         } => run(|| fuse_shard(&scene, views, &partial_out, &common)),
+        Command::WarpShard {
+            scene,
+            pairs,
+            partial_out,
+            common,
+        } => run(|| warp_shard(&scene, pairs, &partial_out, &common)),
         Command::Demo {
             out,
             seed,
@@ -124,6 +132,26 @@ fn fuse_shard(
         profuse_pipeline::fuse_shard(scene, &out, &config, views, partial_out, &mut |_| {
             bar.inc(1)
         })?;
+    bar.finish_and_clear();
+    Ok(serde_json::to_value(report)?)
+}
+
+fn warp_shard(
+    scene: &Path,
+    pairs: std::ops::Range<usize>,
+    partial_out: &Path,
+    common: &Common,
+) -> Result<Value, BoxError> {
+    let config = cli::run_config(common.config.as_deref(), &common.set)?;
+    let out = common.out_dir.clone().unwrap_or_else(|| scene.join("out"));
+    let bar = profuse_tools::progress_bar(
+        chatty(common.quiet),
+        pairs.len() as u64,
+        "warp-graph",
+        "view pairs",
+    );
+    let report =
+        profuse_pipeline::warp_shard(scene, &out, &config, pairs, partial_out, &|_, _| bar.inc(1))?;
     bar.finish_and_clear();
     Ok(serde_json::to_value(report)?)
 }
