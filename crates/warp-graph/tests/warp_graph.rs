@@ -1524,7 +1524,7 @@ fn shard_scene(dir: &std::path::Path) -> warp_graph::job::Job {
 
 /// Evidence of consecutive view-pair ranges, merged in any order, equals the evidence of
 /// all pairs (links with bit-identical scores, counters), and groups into the proposals
-/// of one run, with both groupings.
+/// of one run, with both groupings (grouped by a fresh association, as a merge is).
 #[test]
 fn evidence_of_pair_ranges_merges_into_the_evidence_of_one_run() {
     let dir = tempfile::tempdir().unwrap();
@@ -1562,7 +1562,9 @@ fn evidence_of_pair_ranges_merges_into_the_evidence_of_one_run() {
         };
         assert_eq!(bits(&merged), bits(&whole));
         let one = a.run(&|_, _| {}).unwrap();
-        let grouped = a.group(&merged).unwrap();
+        // A fresh association, as in the merging process: no per-view cache from pairs.
+        let fresh = Association::new(inputs, &params).unwrap();
+        let grouped = fresh.group(&merged).unwrap();
         assert_eq!(grouped.proposals, one.proposals);
         assert_eq!(grouped.report, one.report);
         assert_eq!(grouped.edges, one.edges);
