@@ -29,6 +29,11 @@ pub struct WarpsArgs {
     /// Views paired with each view, nearest camera centres first.
     #[arg(long, value_name = "K", default_value_t = 4)]
     pub nearest: usize,
+    /// Pair only these views (comma-separated indices), each with its --nearest among
+    /// them; the others get no pair and no depth render (e.g. views without masks, or
+    /// held-out views). Default: every view.
+    #[arg(long, value_delimiter = ',', conflicts_with = "pairs")]
+    pub views: Vec<u32>,
     /// Image pixels per grid cell along each axis.
     #[arg(long, value_name = "S", default_value_t = 4)]
     pub stride: usize,
@@ -53,10 +58,12 @@ pub fn run(a: WarpsArgs, show: bool) -> Result<Value, BoxError> {
         depth_tol: a.depth_tol,
         min_alpha: a.min_alpha,
         edge_tol: a.edge_tol.unwrap_or(warp_graph::DEFAULT_EDGE_TOL),
-        pairs: if a.pairs.is_empty() {
-            Pairs::Nearest(a.nearest)
-        } else {
+        pairs: if !a.pairs.is_empty() {
             Pairs::Explicit(a.pairs)
+        } else if !a.views.is_empty() {
+            Pairs::NearestAmong(a.nearest, a.views)
+        } else {
+            Pairs::Nearest(a.nearest)
         },
     };
     let job = WarpsJob {

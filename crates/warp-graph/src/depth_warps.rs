@@ -50,6 +50,9 @@ pub enum Pairs {
     Explicit(Vec<[u32; 2]>),
     /// Each view with its `k` nearest views by camera centre, plus the reverse pairs.
     Nearest(usize),
+    /// As `Nearest`, among the listed views only: the others take part in no pair (views
+    /// without masks, or held out of the semantic half). Each listed once, in range.
+    NearestAmong(usize, Vec<u32>),
 }
 
 /// Parameters of [`depth_warps`].
@@ -238,7 +241,7 @@ fn check(p: &DepthWarpParams) -> Result<()> {
             "a number in (0, 1]",
         ));
     }
-    if p.pairs == Pairs::Nearest(0) {
+    if matches!(p.pairs, Pairs::Nearest(0) | Pairs::NearestAmong(0, _)) {
         return Err(invalid("pairs", "0 nearest views".into(), "k >= 1"));
     }
     Ok(())
@@ -316,25 +319,54 @@ pub fn resolve_pairs(cameras: &Cameras, pairs: &Pairs) -> Result<Vec<[u32; 2]>> 
             list.clone()
         }
         Pairs::Nearest(k) => {
-            let centres: Vec<[f64; 3]> = (0..v).map(|x| cameras.center(x)).collect();
-            let mut out = Vec::new();
-            for i in 0..v {
-                let mut others: Vec<(f64, usize)> = (0..v)
-                    .filter(|&j| j != i)
-                    .map(|j| (dist2(centres[i], centres[j]), j))
-                    .collect();
-                others.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                for &(_, j) in others.iter().take(*k) {
-                    out.push([i as u32, j as u32]);
-                    out.push([j as u32, i as u32]);
+            let all: Vec<usize> = (0..v).collect();
+            nearest_pairs(cameras, &all, *k)
+        }
+        Pairs::NearestAmong(k, views) => {
+            let mut seen = std::collections::BTreeSet::new();
+            for (row, &view) in views.iter().enumerate() {
+                if view as usize >= v {
+                    return Err(WarpGraphError::PairOutOfRange {
+                        row,
+                        view,
+                        views: v,
+                    });
+                }
+                if !seen.insert(view) {
+                    return Err(invalid(
+                        "pairs",
+                        format!("view {view} listed twice"),
+                        "each view of the subset once",
+                    ));
                 }
             }
-            out
+            let among: Vec<usize> = seen.into_iter().map(|x| x as usize).collect();
+            nearest_pairs(cameras, &among, *k)
         }
     };
     out.sort_unstable();
     out.dedup();
     Ok(out)
+}
+
+/// Each of `views` with its `k` nearest others of `views` by camera centre (ties to the
+/// lower index), both directions.
+fn nearest_pairs(cameras: &Cameras, views: &[usize], k: usize) -> Vec<[u32; 2]> {
+    let centre = |x: usize| cameras.center(x);
+    let mut out = Vec::new();
+    for &i in views {
+        let mut others: Vec<(f64, usize)> = views
+            .iter()
+            .filter(|&&j| j != i)
+            .map(|&j| (dist2(centre(i), centre(j)), j))
+            .collect();
+        others.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        for &(_, j) in others.iter().take(k) {
+            out.push([i as u32, j as u32]);
+            out.push([j as u32, i as u32]);
+        }
+    }
+    out
 }
 
 fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {

@@ -1481,6 +1481,23 @@ fn depth_warp_parameters_and_pairs_are_checked() {
     // Views on a line at x = 0, 1, 3: nearest of 0 is 1, of 1 is 0, of 2 is 1.
     let nearest = warp_graph::resolve_pairs(&cams, &warp_graph::Pairs::Nearest(1)).unwrap();
     assert_eq!(nearest, vec![[0, 1], [1, 0], [1, 2], [2, 1]]);
+    // Among views 0 and 2 only, view 1 (nearest to both) takes part in no pair.
+    let among = |views: Vec<u32>| {
+        warp_graph::resolve_pairs(&cams, &warp_graph::Pairs::NearestAmong(1, views))
+    };
+    assert_eq!(among(vec![2, 0]).unwrap(), vec![[0, 2], [2, 0]]);
+    assert!(matches!(
+        among(vec![0, 3]),
+        Err(WarpGraphError::PairOutOfRange {
+            row: 1,
+            view: 3,
+            ..
+        })
+    ));
+    assert!(matches!(
+        among(vec![0, 2, 0]),
+        Err(WarpGraphError::InvalidParameter { name: "pairs", .. })
+    ));
 }
 
 /// Three cameras looking down +z from x = 0, 1, 3.
