@@ -37,6 +37,9 @@ pub enum ViewError {
     /// Scoring, selection or click resolution failed.
     #[error(transparent)]
     Query(#[from] profuse_query::QueryError),
+    /// The selected Gaussians could not be written as an INRIA PLY.
+    #[error(transparent)]
+    Export(#[from] scene_io::SceneError),
     /// The files disagree with each other.
     #[error("{file}: {reason}")]
     Mismatch {

@@ -236,6 +236,14 @@ impl ViewScene {
         Ok(select(&scoring.relevancy[k], Rule::Threshold(threshold))?.ids)
     }
 
+    /// The Gaussians `ids` (ascending, as a selection gives them) as an INRIA 3DGS PLY
+    /// (the query crate's `selected_gaussians`, scene-io's writer): the export of a
+    /// selection.
+    pub fn export_ply(&self, ids: &[u32]) -> Result<Vec<u8>> {
+        let subset = profuse_query::selected_gaussians(&self.gaussians, ids)?;
+        Ok(scene_io::ply::inria_ply_bytes(&subset)?)
+    }
+
     /// Query by click (the query crate's `resolve_click`: the clicked mask's proposal
     /// descriptor), scored by relevancy against the prompts file's canonical negatives and
     /// thresholded like a prompt.

@@ -10,12 +10,13 @@
 //! | `/api/scene` | [`SceneInfo`] as JSON |
 //! | `/api/select?prompt=NAME&threshold=T` | selected Gaussian ids, u32 little-endian |
 //! | `/api/click?view=V&x=X&y=Y&threshold=T` | the same for a click; header `X-Click`: JSON of the resolved mask and proposal |
+//! | `/api/export.ply?prompt=…` or `?view=…&x=…&y=…` (and `threshold`) | that selection's Gaussians as an INRIA 3DGS PLY download |
 //!
 //! Everything the page loads comes from these routes: nothing is fetched from elsewhere.
 
 use std::net::{IpAddr, SocketAddr, TcpListener};
 
-use profuse_query::Click;
+use profuse_query::{Click, ClickTarget};
 
 use crate::error::{Result, ViewError};
 use crate::scene::{SceneInfo, ViewScene};
@@ -146,10 +147,13 @@ pub fn answer(scene: &ViewScene, url: &str) -> Answer {
         "/api/scene" => Ok(json_answer(&scene.info())),
         "/api/select" => select_answer(scene, query),
         "/api/click" => click_answer(scene, query),
+        "/api/export.ply" => export_answer(scene, query),
         _ => return Answer::error(404, format!("no such page: {path}")),
     };
+    // The query crate's errors here come from the request (a click on no mask, a view
+    // out of range): the client's to fix, like a bad parameter.
     result.unwrap_or_else(|e| match e {
-        ViewError::BadRequest { .. } => Answer::error(400, e.to_string()),
+        ViewError::BadRequest { .. } | ViewError::Query(_) => Answer::error(400, e.to_string()),
         _ => Answer::error(500, e.to_string()),
     })
 }
@@ -166,14 +170,16 @@ fn ids_answer(ids: &[u32]) -> Answer {
 }
 
 fn select_answer(scene: &ViewScene, query: &str) -> Result<Answer> {
-    let params = Params::parse(query);
-    let prompt = params.get("prompt")?;
-    let threshold = params.number("threshold")?;
-    Ok(ids_answer(&scene.select_prompt(&prompt, threshold as f32)?))
+    Ok(ids_answer(&prompt_selection(scene, &Params::parse(query))?))
 }
 
-fn click_answer(scene: &ViewScene, query: &str) -> Result<Answer> {
-    let params = Params::parse(query);
+fn prompt_selection(scene: &ViewScene, params: &Params) -> Result<Vec<u32>> {
+    let prompt = params.get("prompt")?;
+    let threshold = params.number("threshold")?;
+    scene.select_prompt(&prompt, threshold as f32)
+}
+
+fn click_selection(scene: &ViewScene, params: &Params) -> Result<(ClickTarget, Vec<u32>)> {
     let view = params.number("view")?;
     if !(view >= 0.0 && view.fract() == 0.0 && view < u32::MAX as f64) {
         return Err(bad("view", "a view index"));
@@ -184,11 +190,30 @@ fn click_answer(scene: &ViewScene, query: &str) -> Result<Answer> {
         y: params.number("y")?,
     };
     let threshold = params.number("threshold")?;
-    let (target, ids) = scene.select_click(click, threshold as f32)?;
+    scene.select_click(click, threshold as f32)
+}
+
+fn click_answer(scene: &ViewScene, query: &str) -> Result<Answer> {
+    let (target, ids) = click_selection(scene, &Params::parse(query))?;
     let mut answer = ids_answer(&ids);
     answer.headers.push((
         "X-Click",
         serde_json::to_string(&target).unwrap_or_default(),
+    ));
+    Ok(answer)
+}
+
+fn export_answer(scene: &ViewScene, query: &str) -> Result<Answer> {
+    let params = Params::parse(query);
+    let ids = if params.get("prompt").is_ok() {
+        prompt_selection(scene, &params)?
+    } else {
+        click_selection(scene, &params)?.1
+    };
+    let mut answer = Answer::ok("application/octet-stream", scene.export_ply(&ids)?);
+    answer.headers.push((
+        "Content-Disposition",
+        "attachment; filename=\"selection.ply\"".into(),
     ));
     Ok(answer)
 }

@@ -3,6 +3,9 @@
 //! errors, the selection answers against the query library, and (with
 //! PROFUSE_REQUIRE_BROWSER=1) the page in headless Chromium on the synth demo output.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+#![allow(clippy::needless_range_loop)]
+
 use std::io::{Read, Write};
 use std::net::{IpAddr, Ipv4Addr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
@@ -279,6 +282,20 @@ fn selections_are_the_query_librarys() {
     assert_eq!(answer(scene, "/etc/passwd").status, 404);
     let gaussians = Gaussians::read(out.join("gaussians.safetensors")).unwrap();
     assert_eq!(answer(scene, "/scene.splat").body, splat_bytes(&gaussians));
+
+    // The export is the selection's Gaussians, in id order, as an INRIA PLY.
+    let ids = scene.select_prompt("sofa", 0.5).unwrap();
+    let got = answer(scene, "/api/export.ply?prompt=sofa&threshold=0.5");
+    assert_eq!(got.status, 200);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("sofa.ply");
+    std::fs::write(&path, &got.body).unwrap();
+    let (subset, _) = scene_io::read_inria_ply(&path).unwrap();
+    assert_eq!(subset.len(), ids.len());
+    for (k, &id) in ids.iter().enumerate() {
+        assert_eq!(subset.means[k], gaussians.means[id as usize]);
+        assert_eq!(subset.sh_dc[k], gaussians.sh_dc[id as usize]);
+    }
 }
 
 #[test]
@@ -300,6 +317,12 @@ fn a_click_on_the_sofa_selects_like_the_query_tool() {
     assert_eq!(got.status, 200, "{}", String::from_utf8_lossy(&got.body));
     let header = &got.headers.iter().find(|(k, _)| *k == "X-Click").unwrap().1;
     assert!(header.contains("\"source\":\"proposal\""), "{header}");
+    let outside = format!("/api/click?view={view}&x=-5&y=3&threshold=0.5");
+    assert_eq!(answer(scene, &outside).status, 400);
+    assert_eq!(
+        answer(scene, "/api/click?view=999&x=1&y=1&threshold=0.5").status,
+        400
+    );
     let ids: Vec<u32> = got
         .body
         .chunks(4)

@@ -95,8 +95,9 @@ async function selectPrompt() {
       selection = null;
       status("no prompt");
     } else {
-      const q = `/api/select?prompt=${encodeURIComponent(name)}&threshold=${t}`;
-      selection = (await fetchIds(q)).ids;
+      const q = `prompt=${encodeURIComponent(name)}&threshold=${t}`;
+      selection = (await fetchIds(`/api/select?${q}`)).ids;
+      $("export").href = `/api/export.ply?${q}`;
       status(`${name}: ${selection.length} of ${info.gaussians} Gaussians`);
     }
     state.selected = selection ? selection.length : null;
@@ -115,7 +116,9 @@ async function selectClick(ev) {
   const sy = ev.clientY - win.top;
   try {
     const t = $("threshold").value;
-    const got = await fetchIds(`/api/click?view=${preset}&x=${sx}&y=${sy}&threshold=${t}`);
+    const q = `view=${preset}&x=${sx}&y=${sy}&threshold=${t}`;
+    const got = await fetchIds(`/api/click?${q}`);
+    $("export").href = `/api/export.ply?${q}`;
     selection = got.ids;
     $("prompt").value = "";
     state.selected = selection.length;
