@@ -197,6 +197,46 @@ fn a_directory_without_outputs_names_the_missing_file() {
 }
 
 #[test]
+fn gaussians_only_shows_the_fox_layout_without_prompts() {
+    // examples/fox.sh writes OUT/gaussians.safetensors and OUT/scene/cameras.safetensors.
+    let dir = tempfile::tempdir().unwrap();
+    let err = profuse_view::OutputPaths::find_gaussians_only(dir.path()).unwrap_err();
+    assert!(matches!(err, ViewError::NotPipelineOutput { .. }), "{err}");
+    let g = Gaussians {
+        means: vec![[0.0, 0.0, 3.0]].into(),
+        log_scales: vec![[-2.0; 3]].into(),
+        rotations: vec![[1.0, 0.0, 0.0, 0.0]].into(),
+        opacity_logits: vec![1.0].into(),
+        sh_dc: vec![[0.1, 0.2, 0.3]].into(),
+        ..Gaussians::default()
+    };
+    g.write(dir.path().join("gaussians.safetensors")).unwrap();
+    std::fs::create_dir(dir.path().join("scene")).unwrap();
+    let cameras = camera(IDENTITY, [0.0; 3], [100.0, 100.0, 32.0, 24.0], [64, 48]);
+    cameras
+        .write(dir.path().join("scene/cameras.safetensors"))
+        .unwrap();
+    let paths = profuse_view::OutputPaths::find_gaussians_only(dir.path()).unwrap();
+    let scene = ViewScene::open_paths(paths).unwrap();
+    let info = scene.info();
+    assert_eq!(
+        (info.gaussians, info.prompts.len(), info.click),
+        (1, 0, false)
+    );
+    assert_eq!(info.views[0].position, [0.0; 3]);
+    assert_eq!(scene.splat(), splat_bytes(&g).as_slice());
+    assert_eq!(
+        answer(&scene, "/api/select?prompt=sofa&threshold=0.5").status,
+        400
+    );
+    // Without the scene's files next to it, it is not a pipeline output.
+    let err = ViewScene::open(dir.path()).unwrap_err();
+    assert!(matches!(err, ViewError::NotPipelineOutput { .. }), "{err}");
+}
+
+const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+
+#[test]
 fn a_taken_port_is_a_typed_error() {
     let taken = TcpListener::bind((LOCALHOST, 0)).unwrap();
     let port = taken.local_addr().unwrap().port();
