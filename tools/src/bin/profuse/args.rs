@@ -162,6 +162,31 @@ pub enum Command {
         #[arg(long)]
         quiet: bool,
     },
+    /// Serve a local web page that shows the scene's Gaussians (gsplat.js, served from this
+    /// binary: nothing is fetched from the internet), lists the prompts, tints the
+    /// Gaussians a prompt selects (relevancy from the PQ codes, threshold slider), selects
+    /// by click (query by click: the clicked mask's proposal) and jumps to the scene's
+    /// camera views. Prints {"url": ...} on stdout once listening; runs until stopped.
+    View {
+        /// A pipeline output: the scene directory (with cameras.safetensors,
+        /// prompts.safetensors and out/ holding gaussians.safetensors and pq.safetensors)
+        /// or its out/ directory. masks.safetensors and out/proposals.safetensors enable
+        /// query by click.
+        dir: PathBuf,
+        /// TCP port (0: any free port).
+        #[arg(long, default_value_t = 8765)]
+        port: u16,
+        /// Address to listen on. The default serves this machine only.
+        #[arg(long, default_value = "127.0.0.1")]
+        host: std::net::IpAddr,
+        /// Show Gaussians without prompts: DIR (or DIR/out) holds gaussians.safetensors and
+        /// DIR, DIR/scene (the layout of examples/fox.sh) or DIR/.. cameras.safetensors.
+        #[arg(long)]
+        gaussians_only: bool,
+        /// No messages on stderr.
+        #[arg(long)]
+        quiet: bool,
+    },
 }
 
 /// `A..B` with A < B.

@@ -1,7 +1,7 @@
 //! `profuse`: the umbrella command of the ProFuse pipeline: `inspect` (SPEC.md §5 report of
 //! any file), `run` (every stage with up-to-date checks), `demo` (the paper's experiment
 //! against the `--no-proposals` baseline on a synth scene) and `sweep` (the demo over
-//! seeds and fault sets). The work lives in `profuse_pipeline` (`cli`, `demo`, `sweep`);
+//! seeds and fault sets), `view` (the browser viewer of `profuse_view`). The work lives in `profuse_pipeline` (`cli`, `demo`, `sweep`);
 //! this tool parses arguments, displays progress and prints.
 
 use std::io::Write;
@@ -60,6 +60,13 @@ fn main() -> ExitCode {
             json,
             common,
         } => print_result(demo(out, seed, &scene, json, &common)),
+        Command::View {
+            dir,
+            port,
+            host,
+            gaussians_only,
+            quiet,
+        } => view(&dir, host, port, gaussians_only, quiet),
         Command::Sweep {
             seeds,
             faults,
@@ -211,4 +218,36 @@ fn run_sweep(opts: &SweepOptions, as_json: bool, quiet: bool) -> Result<String, 
     } else {
         sweep::text_table(&report)
     })
+}
+
+/// Opens the output, binds, prints the URL and serves until the process is stopped.
+fn view(dir: &Path, host: std::net::IpAddr, port: u16, only: bool, quiet: bool) -> ExitCode {
+    use profuse_view::{OutputPaths, ViewScene};
+    let opened = profuse_view::listen(host, port).and_then(|listener| {
+        let paths = if only {
+            OutputPaths::find_gaussians_only(dir)?
+        } else {
+            OutputPaths::find(dir)?
+        };
+        Ok((listener, ViewScene::open_paths(paths)?))
+    });
+    let (listener, scene) = match opened {
+        Ok(both) => both,
+        Err(e) => return print_result(Err(e.into())),
+    };
+    let line = serde_json::json!({ "url": listener.url() }).to_string();
+    let mut out = std::io::stdout().lock();
+    if writeln!(out, "{line}").and_then(|()| out.flush()).is_err() {
+        return ExitCode::FAILURE;
+    }
+    drop(out);
+    if !quiet {
+        eprintln!(
+            "profuse view: serving {} on {} (Ctrl-C to stop)",
+            dir.display(),
+            listener.url()
+        );
+    }
+    listener.serve(&scene);
+    ExitCode::SUCCESS
 }

@@ -1,0 +1,21 @@
+//! `profuse view`: a local web viewer of a pipeline output. A small HTTP server
+//! ([`listen`], [`Listener::serve`]) sends the page, the vendored gsplat.js viewer, the scene's
+//! Gaussians as `.splat` rows ([`splat`]) and the camera presets ([`presets`]), and answers
+//! selection requests: the LERF relevancy of every Gaussian for every prompt is computed
+//! once from the PQ codes with the query crate ([`ViewScene::open`]), and a request applies
+//! the slider's threshold with the query crate's selection rule; a click goes through the
+//! query crate's `resolve_click`. The browser never sees a descriptor.
+//!
+//! See the crate README for the library choice, the page and the measured frame rates.
+
+pub mod error;
+pub mod presets;
+pub mod scene;
+pub mod server;
+pub mod splat;
+
+pub use error::{Result, ViewError};
+pub use presets::{presets, rotation_to_quaternion, Preset};
+pub use scene::{OutputPaths, SceneInfo, ViewScene};
+pub use server::{answer, listen, percent_decode, Answer, Listener};
+pub use splat::{splat_bytes, SPLAT_ROW_BYTES};

@@ -1,0 +1,289 @@
+//! The HTTP side: a tiny_http server on one socket, answering from a [`ViewScene`].
+//!
+//! Routes (all GET):
+//!
+//! | path | answer |
+//! |---|---|
+//! | `/` | the page (`web/index.html`) |
+//! | `/app.js`, `/gsplat.js` | the page's script and the vendored gsplat.js bundle |
+//! | `/scene.splat` | the Gaussians as `.splat` rows ([`crate::splat`]) |
+//! | `/api/scene` | [`SceneInfo`] as JSON |
+//! | `/api/select?prompt=NAME&threshold=T` | selected Gaussian ids, u32 little-endian |
+//! | `/api/click?view=V&x=X&y=Y&threshold=T` | the same for a click; header `X-Click`: JSON of the resolved mask and proposal |
+//! | `/api/export.ply?prompt=…` or `?view=…&x=…&y=…` (and `threshold`) | that selection's Gaussians as an INRIA 3DGS PLY download |
+//!
+//! Everything the page loads comes from these routes: nothing is fetched from elsewhere.
+
+use std::net::{IpAddr, SocketAddr, TcpListener};
+
+use profuse_query::{Click, ClickTarget};
+
+use crate::error::{Result, ViewError};
+use crate::scene::{SceneInfo, ViewScene};
+
+const INDEX_HTML: &str = include_str!("../web/index.html");
+const APP_JS: &str = include_str!("../web/app.js");
+const GSPLAT_JS: &str = include_str!("../web/vendor/gsplat.js");
+
+/// An answer to one request.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Answer {
+    /// HTTP status.
+    pub status: u16,
+    /// Content type.
+    pub content_type: &'static str,
+    /// Body.
+    pub body: Vec<u8>,
+    /// Extra headers (name, value).
+    pub headers: Vec<(&'static str, String)>,
+}
+
+impl Answer {
+    fn ok(content_type: &'static str, body: Vec<u8>) -> Answer {
+        Answer {
+            status: 200,
+            content_type,
+            body,
+            headers: Vec::new(),
+        }
+    }
+
+    fn error(status: u16, message: String) -> Answer {
+        Answer {
+            status,
+            content_type: "text/plain; charset=utf-8",
+            body: message.into_bytes(),
+            headers: Vec::new(),
+        }
+    }
+}
+
+/// The listening socket. It is bound before the scene is read, so that a taken port is
+/// reported at once.
+pub struct Listener {
+    server: tiny_http::Server,
+    addr: SocketAddr,
+}
+
+impl std::fmt::Debug for Listener {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Listener")
+            .field("addr", &self.addr)
+            .finish()
+    }
+}
+
+/// Listens on `host:port` (port 0: any free port). A port in use is
+/// [`ViewError::PortInUse`].
+pub fn listen(host: IpAddr, port: u16) -> Result<Listener> {
+    let wanted = SocketAddr::new(host, port);
+    let listener = TcpListener::bind(wanted).map_err(|source| match source.kind() {
+        std::io::ErrorKind::AddrInUse => ViewError::PortInUse {
+            addr: wanted.to_string(),
+        },
+        _ => ViewError::Bind {
+            addr: wanted.to_string(),
+            source,
+        },
+    })?;
+    let addr = listener.local_addr().map_err(|source| ViewError::Bind {
+        addr: wanted.to_string(),
+        source,
+    })?;
+    let server = tiny_http::Server::from_listener(listener, None).map_err(|e| ViewError::Bind {
+        addr: addr.to_string(),
+        source: std::io::Error::other(e.to_string()),
+    })?;
+    Ok(Listener { server, addr })
+}
+
+impl Listener {
+    /// The address it listens on.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// The page's URL.
+    pub fn url(&self) -> String {
+        format!("http://{}/", self.addr)
+    }
+
+    /// Answers requests about `scene` until the process ends. A failed reply (the browser
+    /// went away) is reported on stderr and does not stop the server.
+    pub fn serve(&self, scene: &ViewScene) {
+        for request in self.server.incoming_requests() {
+            let answer = answer(scene, request.url());
+            let mut response = tiny_http::Response::from_data(answer.body)
+                .with_status_code(answer.status)
+                .with_header(header("Content-Type", answer.content_type))
+                .with_header(header("Cache-Control", "no-store"));
+            for (name, value) in &answer.headers {
+                response = response.with_header(header(name, value));
+            }
+            if let Err(e) = request.respond(response) {
+                eprintln!("profuse view: reply failed: {e}");
+            }
+        }
+    }
+}
+
+fn header(name: &str, value: &str) -> tiny_http::Header {
+    // Names and values are ours or JSON without control characters: always valid.
+    tiny_http::Header::from_bytes(name.as_bytes(), value.as_bytes())
+        .unwrap_or_else(|()| unreachable!("invalid header {name}"))
+}
+
+/// The answer to a GET of `url` (path and query string).
+pub fn answer(scene: &ViewScene, url: &str) -> Answer {
+    let (path, query) = url.split_once('?').unwrap_or((url, ""));
+    let result = match path {
+        "/" | "/index.html" => Ok(Answer::ok("text/html; charset=utf-8", INDEX_HTML.into())),
+        "/app.js" => Ok(Answer::ok("text/javascript", APP_JS.into())),
+        "/gsplat.js" => Ok(Answer::ok("text/javascript", GSPLAT_JS.into())),
+        "/scene.splat" => Ok(Answer::ok(
+            "application/octet-stream",
+            scene.splat().to_vec(),
+        )),
+        "/api/scene" => Ok(json_answer(&scene.info())),
+        "/api/select" => select_answer(scene, query),
+        "/api/click" => click_answer(scene, query),
+        "/api/export.ply" => export_answer(scene, query),
+        _ => return Answer::error(404, format!("no such page: {path}")),
+    };
+    // The query crate's errors here come from the request (a click on no mask, a view
+    // out of range): the client's to fix, like a bad parameter.
+    result.unwrap_or_else(|e| match e {
+        ViewError::BadRequest { .. } | ViewError::Query(_) => Answer::error(400, e.to_string()),
+        _ => Answer::error(500, e.to_string()),
+    })
+}
+
+fn json_answer(info: &SceneInfo) -> Answer {
+    // Serialising plain structs of numbers and strings cannot fail.
+    let body = serde_json::to_vec(info).unwrap_or_default();
+    Answer::ok("application/json", body)
+}
+
+fn ids_answer(ids: &[u32]) -> Answer {
+    let body = ids.iter().flat_map(|id| id.to_le_bytes()).collect();
+    Answer::ok("application/octet-stream", body)
+}
+
+fn select_answer(scene: &ViewScene, query: &str) -> Result<Answer> {
+    Ok(ids_answer(&prompt_selection(scene, &Params::parse(query))?))
+}
+
+fn prompt_selection(scene: &ViewScene, params: &Params) -> Result<Vec<u32>> {
+    let prompt = params.get("prompt")?;
+    let threshold = params.number("threshold")?;
+    scene.select_prompt(&prompt, threshold as f32)
+}
+
+fn click_selection(scene: &ViewScene, params: &Params) -> Result<(ClickTarget, Vec<u32>)> {
+    let view = params.number("view")?;
+    if !(view >= 0.0 && view.fract() == 0.0 && view < u32::MAX as f64) {
+        return Err(bad("view", "a view index"));
+    }
+    let click = Click {
+        view: view as usize,
+        x: params.number("x")?,
+        y: params.number("y")?,
+    };
+    let threshold = params.number("threshold")?;
+    scene.select_click(click, threshold as f32)
+}
+
+fn click_answer(scene: &ViewScene, query: &str) -> Result<Answer> {
+    let (target, ids) = click_selection(scene, &Params::parse(query))?;
+    let mut answer = ids_answer(&ids);
+    answer.headers.push((
+        "X-Click",
+        serde_json::to_string(&target).unwrap_or_default(),
+    ));
+    Ok(answer)
+}
+
+fn export_answer(scene: &ViewScene, query: &str) -> Result<Answer> {
+    let params = Params::parse(query);
+    let ids = if params.get("prompt").is_ok() {
+        prompt_selection(scene, &params)?
+    } else {
+        click_selection(scene, &params)?.1
+    };
+    let mut answer = Answer::ok("application/octet-stream", scene.export_ply(&ids)?);
+    answer.headers.push((
+        "Content-Disposition",
+        "attachment; filename=\"selection.ply\"".into(),
+    ));
+    Ok(answer)
+}
+
+fn bad(name: &str, reason: &str) -> ViewError {
+    ViewError::BadRequest {
+        name: name.into(),
+        reason: reason.into(),
+    }
+}
+
+/// Decoded `name=value` pairs of a query string.
+struct Params(Vec<(String, String)>);
+
+impl Params {
+    fn parse(query: &str) -> Params {
+        Params(
+            query
+                .split('&')
+                .filter(|p| !p.is_empty())
+                .map(|p| {
+                    let (k, v) = p.split_once('=').unwrap_or((p, ""));
+                    (percent_decode(k), percent_decode(v))
+                })
+                .collect(),
+        )
+    }
+
+    fn get(&self, name: &str) -> Result<String> {
+        self.0
+            .iter()
+            .find(|(k, _)| k == name)
+            .map(|(_, v)| v.clone())
+            .ok_or_else(|| bad(name, "missing"))
+    }
+
+    fn number(&self, name: &str) -> Result<f64> {
+        let text = self.get(name)?;
+        text.parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| bad(name, &format!("a finite number, got {text:?}")))
+    }
+}
+
+/// Decodes `%XX` escapes and `+` (a space in form encoding); invalid escapes stay as
+/// they are, invalid UTF-8 becomes U+FFFD.
+pub fn percent_decode(s: &str) -> String {
+    let bytes = s.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        let hex = bytes
+            .get(i + 1..i + 3)
+            .and_then(|h| std::str::from_utf8(h).ok())
+            .and_then(|h| u8::from_str_radix(h, 16).ok());
+        match (bytes[i], hex) {
+            (b'%', Some(v)) => {
+                out.push(v);
+                i += 3;
+            }
+            (b'+', _) => {
+                out.push(b' ');
+                i += 1;
+            }
+            (b, _) => {
+                out.push(b);
+                i += 1;
+            }
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
