@@ -241,6 +241,12 @@ def sample(kind: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
             "num_gaussians": "4", "num_views": "3", "k": "2", "grouping": "blend",
             "orphans": "ignore", "num_groups": "3", "pixels": "10", "hits": "15",
         }
+    if kind == "semantic_index":
+        return {
+            "descriptors": np.array([[1, 0], [0, 0], [0.6, 0.8]], f32),
+            "index": np.array([0, 2, 65535, 1], np.uint16),
+            "share": np.array([255, 90, 0, 200], np.uint8),
+        }, {"min_share": "128"}
     raise KeyError(kind)
 
 
@@ -262,6 +268,7 @@ GENERIC = {
     "view_maps": ("depth", "depth", ("depth", "object_ids")),
     "topk": ("weights", "weights", ("ids", "weights")),
     "fuse_partial": ("w_sums", "mask_features", ("mask_group", "mask_mass")),
+    "semantic_index": ("share", "descriptors", ("index", "share")),
 }
 
 # Per kind: a mutation putting an id or value out of range, and the field it names.
@@ -281,6 +288,7 @@ OUT_OF_RANGE: dict[str, tuple[Callable[[dict], None], str]] = {
     "view_maps": (lambda t: t["object_ids"].__setitem__((0, 0, 0), 3), "object_ids"),
     "topk": (lambda t: t["ids"].__setitem__((0, 0, 1), 7), "ids"),
     "fuse_partial": (lambda t: t["mask_group"].__setitem__(2, 3), "mask_group"),
+    "semantic_index": (lambda t: t["index"].__setitem__(0, 3), "index"),
 }
 
 

@@ -35,7 +35,7 @@ RUST = os.environ.get("PROFUSE_RUST_INSPECT")
 
 # Metadata keys that the per-kind writers take as arguments, and how to parse them.
 _NAME_LISTS = {"image_names", "view_names", "names"}
-_INTEGERS = {"num_views", "num_gaussians", "num_objects", "sh_degree", "k", "num_groups", "pixels", "hits"}
+_INTEGERS = {"num_views", "num_gaussians", "num_objects", "sh_degree", "k", "num_groups", "pixels", "hits", "min_share"}
 _TEXTS = {"coords", "prompt", "grouping", "orphans"}
 # Keys a writer sets itself (the Rust writer does too).
 _FIXED = {"convention", "metric", "nbits"}
@@ -233,6 +233,12 @@ def own_samples() -> dict[str, dict[str, Any]]:
             w_groups=[1, 0, 1],
             w_sums=pf.fixed_point_words([5, 2**64 + 1, 2**62]),
             metadata={"weight_scale": "2^-62"},
+        ),
+        "semantic_index": dict(
+            descriptors=unit(3, 4),
+            index=[2, 0, 65535, 1],
+            share=[255, 100, 0, 128],
+            min_share=128,
         ),
     }
 

@@ -11,7 +11,7 @@ use crate::error::{FormatError, Result};
 use crate::kind::{FileKind, Kind};
 use crate::{
     Cameras, Features, FusePartial, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals,
-    Selection, SparseMatches, TopK, VertexLabels, ViewMaps,
+    Selection, SemanticIndex, SparseMatches, TopK, VertexLabels, ViewMaps,
 };
 
 /// The outcome of inspecting one file.
@@ -103,5 +103,6 @@ pub fn validate_any(c: &Container) -> Result<BTreeMap<&'static str, u64>> {
         Kind::ViewMaps => counts::<ViewMaps>(c),
         Kind::TopK => counts::<TopK>(c),
         Kind::FusePartial => counts::<FusePartial>(c),
+        Kind::SemanticIndex => counts::<SemanticIndex>(c),
     }
 }

@@ -28,11 +28,12 @@ pub enum Kind {
     ViewMaps,
     TopK,
     FusePartial,
+    SemanticIndex,
 }
 
 impl Kind {
     /// All kinds, in SPEC.md order.
-    pub const ALL: [Kind; 15] = [
+    pub const ALL: [Kind; 16] = [
         Kind::Cameras,
         Kind::Gaussians,
         Kind::Masks,
@@ -48,6 +49,7 @@ impl Kind {
         Kind::ViewMaps,
         Kind::TopK,
         Kind::FusePartial,
+        Kind::SemanticIndex,
     ];
 
     /// Short name (`cameras`, `sparse_matches`, ...).
@@ -68,6 +70,7 @@ impl Kind {
             Kind::ViewMaps => "view_maps",
             Kind::TopK => "topk",
             Kind::FusePartial => "fuse_partial",
+            Kind::SemanticIndex => "semantic_index",
         }
     }
 
@@ -89,6 +92,7 @@ impl Kind {
             Kind::ViewMaps => "profuse.view_maps",
             Kind::TopK => "profuse.topk",
             Kind::FusePartial => "profuse.fuse_partial",
+            Kind::SemanticIndex => "profuse.semantic_index",
         }
     }
 
