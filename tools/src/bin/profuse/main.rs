@@ -29,8 +29,12 @@ fn main() -> ExitCode {
             proposals,
             until,
             fuse_partials,
-            common,
+            semantics,
+            mut common,
         } => run(|| {
+            if let Some(s) = semantics {
+                common.set.push(format!("query.semantics=\"{}\"", s.name()));
+            }
             let opts = RunOptions {
                 proposals,
                 until,
