@@ -1259,9 +1259,8 @@ fn a_semantic_index_gives_each_gaussian_its_proposals_class_probabilities() {
         assert!((x - y).abs() < 1e-5);
     }
     // Two Gaussians of one proposal have the same probabilities.
-    let of = |p: u32| (0..s.g.len()).filter(move |g| ids[*g] == Some(p));
-    for p in 0..12 {
-        let members: Vec<usize> = of(p).collect();
+    for p in 0..12u32 {
+        let members: Vec<usize> = (0..s.g.len()).filter(|g| ids[*g] == Some(p)).collect();
         for g in &members[1..] {
             assert_eq!(indexed.probabilities(*g), indexed.probabilities(members[0]));
         }
