@@ -1641,7 +1641,7 @@ fn semantic_index_matches_the_brute_force_dominant_proposal() {
         assert_eq!(
             counts["indexed"] as usize,
             (0..reg.features.len())
-                .filter(|&g| partial.weights().row(g).0.len() > 0)
+                .filter(|&g| !partial.weights().row(g).0.is_empty())
                 .count()
         );
     }

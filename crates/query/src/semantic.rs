@@ -33,6 +33,11 @@ impl Indexed<'_> {
         self.index.num_gaussians()
     }
 
+    /// Whether there are no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
     /// Whether Gaussian `g` is scored through its PQ code.
     pub fn falls_back(&self, g: usize) -> bool {
         self.fallback.is_some() && !self.index.is_dominant(g)
