@@ -27,6 +27,7 @@ OUT = ROOT / "fuzz" / "corpus"
 KINDS = [
     "cameras", "gaussians", "masks", "matches", "sparse_matches", "proposals", "features", "pq",
     "prompts", "selection", "vertex_labels", "mesh", "view_maps", "topk", "fuse_partial",
+    "semantic_index", "warp_partial",
 ]
 
 

@@ -95,6 +95,9 @@ __all__ = [
     "read_topk",
     "FusePartial",
     "read_fuse_partial",
+    "SemanticIndex",
+    "read_semantic_index",
+    "quantise_share",
     "fixed_point",
     "fixed_point_words",
     "NO_GROUP",
@@ -122,6 +125,7 @@ __all__ = [
     "write_topk",
     "write_fuse_partial",
     "write_warp_partial",
+    "write_semantic_index",
     "read_any",
     "inspect",
     "report_json",
@@ -173,6 +177,7 @@ KINDS = (
     "topk",
     "fuse_partial",
     "warp_partial",
+    "semantic_index",
 )
 
 _U32_MAX = 2**32 - 1
@@ -2442,6 +2447,100 @@ def _warp_partial(c: Container) -> WarpPartial:
     )
 
 
+# --------------------------------------------------------------------------------------
+# semantic_index (SPEC.md 4.17)
+# --------------------------------------------------------------------------------------
+
+#: Units of ``share`` and ``min_share``: a stored q means a share of q / 255.
+SHARE_SCALE = 255
+#: Largest proposal count whose ``index`` is U16 (65535 stays the "none" value).
+MAX_U16_PROPOSALS = 65535
+
+
+def quantise_share(share: float) -> int:
+    """round(255 * share) of a share clamped to [0, 1] (half away from zero, as Rust)."""
+    x = min(max(float(share), 0.0), 1.0) * SHARE_SCALE
+    return int(np.floor(x + 0.5))
+
+
+def _index_dtype(num_proposals: int) -> str:
+    return "U16" if num_proposals <= MAX_U16_PROPOSALS else "U32"
+
+
+@dataclasses.dataclass
+class SemanticIndex(_Record):
+    """``profuse.semantic_index``: per Gaussian its dominant proposal and that proposal's
+    share of its weight, plus the proposal descriptor table."""
+
+    KIND: ClassVar[str] = "semantic_index"
+    TENSORS: ClassVar[tuple[str, ...]] = ("descriptors", "index", "share")
+
+    path: str
+    metadata: dict[str, str]
+    #: F16 or F32 [P, D]: unit-norm rows or all zero.
+    descriptors: np.ndarray
+    #: U16 (P <= 65535) or U32 [N]: dominant proposal, or the dtype's maximum (none).
+    index: np.ndarray
+    #: U8 [N]: share in units of 1/255, 0 where index is none.
+    share: np.ndarray
+    #: Metadata ``min_share`` (units of 1/255).
+    min_share: int
+    #: Descriptor dimension D.
+    dim: int
+
+    def dominant(self) -> np.ndarray:
+        """Boolean [N]: a dominant proposal (index not none, share >= min_share)."""
+        none = _LABEL_NONE["U16" if self.index.dtype == np.uint16 else "U32"]
+        return (self.index != none) & (self.share >= self.min_share)
+
+    def counts(self) -> dict[str, int]:
+        none = _LABEL_NONE["U16" if self.index.dtype == np.uint16 else "U32"]
+        return {
+            "gaussians": int(self.share.shape[0]),
+            "proposals": int(self.descriptors.shape[0]),
+            "feature_dim": self.dim,
+            "indexed": int(np.count_nonzero(self.index != none)),
+            "dominant": int(np.count_nonzero(self.dominant())),
+        }
+
+
+def _semantic_index(c: Container) -> SemanticIndex:
+    r = _Reader(c)
+    expected = "an integer in 0..=255 (a share in units of 1/255)"
+    min_share = r.meta_usize("min_share", expected)
+    if min_share > 255:
+        raise _meta_error(c.path, "min_share", expected)
+    desc_dtype = r.req_either("descriptors", ("F16", "F32"), "P,D")
+    p, dim = r.dim("P"), r.dim("D")
+    index_dtype = r.req_either("index", ("U16", "U32"), "N")
+    want = _index_dtype(p)
+    if index_dtype != want:
+        raise _dtype_error(c.path, "index", index_dtype, f"{want} for P = {p} proposals (U16 iff P <= 65535)")
+    r.req("share", "U8", "N")
+    a = r.load()
+    path = c.path
+    if dim == 0:
+        raise _shape_error(path, "descriptors", [p, 0], "[P, D] with D >= 1")
+    desc = a["descriptors"]
+    _check_finite(path, "descriptors", desc)
+    _check_unit_rows(path, "descriptors", desc, desc_dtype, ~np.any(desc != 0, axis=1))
+    none = _LABEL_NONE[index_dtype]
+    index, share = a["index"], a["share"]
+    _check_ids(path, "index", index, p, none, "the table")
+    g = _first((index == none) & (share != 0))
+    if g is not None:
+        raise _invalid(path, "share", f"Gaussian {g} has no proposal but share {int(share[g])} (expected 0)")
+    return SemanticIndex(
+        path=path,
+        metadata=dict(c.metadata),
+        descriptors=desc,
+        index=index,
+        share=share,
+        min_share=min_share,
+        dim=dim,
+    )
+
+
 _READERS: dict[str, Callable[[Container], _Record]] = {
     "cameras": _cameras,
     "gaussians": _gaussians,
@@ -2459,6 +2558,7 @@ _READERS: dict[str, Callable[[Container], _Record]] = {
     "topk": _topk,
     "fuse_partial": _fuse_partial,
     "warp_partial": _warp_partial,
+    "semantic_index": _semantic_index,
 }
 
 
@@ -2546,6 +2646,9 @@ def read_fuse_partial(path: Any) -> FusePartial:
 def read_warp_partial(path: Any) -> WarpPartial:
     """Reads and fully validates a ``profuse.warp_partial`` file."""
     return _read_kind(path, "warp_partial")
+def read_semantic_index(path: Any) -> SemanticIndex:
+    """Reads and fully validates a ``profuse.semantic_index`` file."""
+    return _read_kind(path, "semantic_index")
 
 
 def _read_container(c: Container) -> _Record:
@@ -3046,6 +3149,33 @@ def write_selection(
     }
     fixed = {"prompt": str(prompt), "num_gaussians": _meta_int(p, "num_gaussians", num_gaussians)}
     _finish(path, "selection", tensors, fixed, metadata, generator)
+
+
+
+def write_semantic_index(
+    path: Any,
+    *,
+    descriptors: Any,
+    index: Any,
+    share: Any,
+    min_share: int,
+    metadata: dict[str, str] | None = None,
+    generator: str | None = GENERATOR,
+) -> None:
+    """``profuse.semantic_index`` (SPEC.md 4.17): the proposal table ``descriptors``
+    [P, D], per Gaussian its dominant proposal ``index`` [N] (stored U16 iff P <= 65535,
+    the dtype's maximum = none) and ``share`` U8 [N] (units of 1/255, see
+    :func:`quantise_share`); ``min_share`` in the same units."""
+    p = _label(path)
+    desc = _tensor(p, "descriptors", descriptors, ("F16", "F32"))
+    num = desc.shape[0] if desc.ndim >= 1 else 0
+    tensors = {
+        "descriptors": desc,
+        "index": _tensor(p, "index", index, (_index_dtype(num),)),
+        "share": _tensor(p, "share", share, ("U8",)),
+    }
+    fixed = {"min_share": _meta_int(p, "min_share", min_share)}
+    _finish(path, "semantic_index", tensors, fixed, metadata, generator)
 
 
 def write_vertex_labels(

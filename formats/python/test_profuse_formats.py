@@ -251,6 +251,12 @@ def sample(kind: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
             "edge_masks": np.array([[0, 4], [1, 5]], u32),
             "edge_scores": np.array([[0.75, 0.5], [0.1, 1.0]], np.float64),
         }, meta
+    if kind == "semantic_index":
+        return {
+            "descriptors": np.array([[1, 0], [0, 0], [0.6, 0.8]], f32),
+            "index": np.array([0, 2, 65535, 1], np.uint16),
+            "share": np.array([255, 90, 0, 200], np.uint8),
+        }, {"min_share": "128"}
     raise KeyError(kind)
 
 
@@ -273,6 +279,7 @@ GENERIC = {
     "topk": ("weights", "weights", ("ids", "weights")),
     "fuse_partial": ("w_sums", "mask_features", ("mask_group", "mask_mass")),
     "warp_partial": ("edge_scores", "edge_scores", ("edge_masks", "edge_scores")),
+    "semantic_index": ("share", "descriptors", ("index", "share")),
 }
 
 # Per kind: a mutation putting an id or value out of range, and the field it names.
@@ -293,6 +300,7 @@ OUT_OF_RANGE: dict[str, tuple[Callable[[dict], None], str]] = {
     "topk": (lambda t: t["ids"].__setitem__((0, 0, 1), 7), "ids"),
     "fuse_partial": (lambda t: t["mask_group"].__setitem__(2, 3), "mask_group"),
     "warp_partial": (lambda t: t["edge_masks"].__setitem__((1, 1), 6), "edge_masks"),
+    "semantic_index": (lambda t: t["index"].__setitem__(0, 3), "index"),
 }
 
 

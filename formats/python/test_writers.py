@@ -35,7 +35,7 @@ RUST = os.environ.get("PROFUSE_RUST_INSPECT")
 
 # Metadata keys that the per-kind writers take as arguments, and how to parse them.
 _NAME_LISTS = {"image_names", "view_names", "names"}
-_INTEGERS = {"num_views", "num_gaussians", "num_objects", "sh_degree", "k", "num_groups", "pixels", "hits"}
+_INTEGERS = {"num_views", "num_gaussians", "num_objects", "sh_degree", "k", "num_groups", "pixels", "hits", "min_share"}
 _INTEGERS |= {"num_masks", "num_view_pairs", "first_pair", *pf.WARP_COUNTERS}
 _TEXTS = {"coords", "prompt", "grouping", "orphans", *pf.WARP_INPUTS}
 # Keys a writer sets itself (the Rust writer does too).
@@ -246,6 +246,12 @@ def own_samples() -> dict[str, dict[str, Any]]:
             edge_scores=np.array([[0.1 + 0.2, 1.0]]),
             **{key: i for i, key in enumerate(pf.WARP_COUNTERS)},
             **{key: f"{key}-id" for key in pf.WARP_INPUTS},
+        ),
+        "semantic_index": dict(
+            descriptors=unit(3, 4),
+            index=[2, 0, 65535, 1],
+            share=[255, 100, 0, 128],
+            min_share=128,
         ),
     }
 

@@ -11,7 +11,7 @@ use crate::error::{FormatError, Result};
 use crate::kind::{FileKind, Kind};
 use crate::{
     Cameras, Features, FusePartial, Gaussians, Masks, Matches, Mesh, Pq, Prompts, Proposals,
-    Selection, SparseMatches, TopK, VertexLabels, ViewMaps, WarpPartial,
+    Selection, SemanticIndex, SparseMatches, TopK, VertexLabels, ViewMaps, WarpPartial,
 };
 
 /// The outcome of inspecting one file.
@@ -104,5 +104,6 @@ pub fn validate_any(c: &Container) -> Result<BTreeMap<&'static str, u64>> {
         Kind::TopK => counts::<TopK>(c),
         Kind::FusePartial => counts::<FusePartial>(c),
         Kind::WarpPartial => counts::<WarpPartial>(c),
+        Kind::SemanticIndex => counts::<SemanticIndex>(c),
     }
 }

@@ -29,11 +29,12 @@ pub enum Kind {
     TopK,
     FusePartial,
     WarpPartial,
+    SemanticIndex,
 }
 
 impl Kind {
     /// All kinds, in SPEC.md order.
-    pub const ALL: [Kind; 16] = [
+    pub const ALL: [Kind; 17] = [
         Kind::Cameras,
         Kind::Gaussians,
         Kind::Masks,
@@ -50,6 +51,7 @@ impl Kind {
         Kind::TopK,
         Kind::FusePartial,
         Kind::WarpPartial,
+        Kind::SemanticIndex,
     ];
 
     /// Short name (`cameras`, `sparse_matches`, ...).
@@ -71,6 +73,7 @@ impl Kind {
             Kind::TopK => "topk",
             Kind::FusePartial => "fuse_partial",
             Kind::WarpPartial => "warp_partial",
+            Kind::SemanticIndex => "semantic_index",
         }
     }
 
@@ -93,6 +96,7 @@ impl Kind {
             Kind::TopK => "profuse.topk",
             Kind::FusePartial => "profuse.fuse_partial",
             Kind::WarpPartial => "profuse.warp_partial",
+            Kind::SemanticIndex => "profuse.semantic_index",
         }
     }
 

@@ -80,6 +80,7 @@ mod proposals;
 pub mod rng;
 pub mod samples;
 mod selection;
+mod semantic_index;
 mod topk;
 mod vertex_labels;
 mod view_maps;
@@ -104,6 +105,9 @@ pub use pq::{Pq, KSUB};
 pub use prompts::Prompts;
 pub use proposals::{Proposals, NO_PROPOSAL};
 pub use selection::Selection;
+pub use semantic_index::{
+    index_dtype, quantise_share, SemanticIndex, MAX_U16_PROPOSALS, SHARE_SCALE,
+};
 pub use topk::{TopK, NO_GAUSSIAN, WEIGHT_SUM_TOLERANCE};
 pub use vertex_labels::VertexLabels;
 pub use view_maps::{ViewMaps, NO_OBJECT};

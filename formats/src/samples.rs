@@ -14,8 +14,8 @@ use crate::kind::{FileKind, Kind};
 use crate::writer::FileWriter;
 use crate::{
     Cameras, Features, FuseGrouping, FuseOrphans, FusePartial, Gaussians, Masks, Matches, Mesh, Pq,
-    Prompts, Proposals, Selection, SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords,
-    WarpPartial,
+    Prompts, Proposals, Selection, SemanticIndex, SparseMatches, TopK, VertexLabels, ViewMaps,
+    WarpCoords, WarpPartial,
 };
 
 /// Two views looking at the origin from +x and −z, 8x6 pixels.
@@ -277,6 +277,88 @@ pub fn selection() -> Selection {
             ("score".to_string(), "cosine".to_string()),
             ("threshold".to_string(), "0.25".to_string()),
         ]),
+    }
+}
+
+/// Five Gaussians over three proposals (one without a descriptor): two dominant, one
+/// below `min_share`, one never registered, one on the descriptor-less proposal.
+pub fn semantic_index() -> SemanticIndex {
+    let mut table = unit_rows(&[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 1.0, 0.0], [0.0; 4]]);
+    table[8..12].fill(0.0);
+    SemanticIndex {
+        descriptors: Floats::F32(table.into()),
+        dim: 4,
+        index: SemanticIndex::index_of(3, &[Some(0), Some(1), Some(0), None, Some(2)]),
+        share: vec![255, 200, 100, 0, 128].into(),
+        min_share: 128,
+        extra: BTreeMap::from([("generator".to_string(), "profuse-fuse".to_string())]),
+    }
+}
+
+/// The semantic_index sample and its defects.
+fn semantic_index_case() -> Case {
+    let si = semantic_index();
+    let v = bytes_of(&unvalidated(&si));
+    let mut inv = container_defects(&v, "share");
+    inv.extend([
+        (
+            "missing_tensor",
+            without_tensor(&v, "share"),
+            "missing_tensor",
+            Some("share"),
+        ),
+        (
+            "dtype",
+            retype(&v, "index", Dtype::U32),
+            "dtype",
+            Some("index"),
+        ),
+        ("shape", reshape(&v, "share", &[4]), "shape", Some("share")),
+        (
+            "metadata",
+            with_meta(&si, "min_share", Some("256")),
+            "metadata",
+            Some("min_share"),
+        ),
+        (
+            "out_of_range",
+            mutated(&si, |s| {
+                s.index = SemanticIndex::index_of(3, &[Some(0), Some(3), Some(0), None, Some(2)])
+            }),
+            "out_of_range",
+            Some("index"),
+        ),
+        (
+            "non_finite",
+            mutated(&si, |s| {
+                let mut t = s.descriptors.to_f32_vec();
+                t[1] = f32::NAN;
+                s.descriptors = Floats::F32(t.into());
+            }),
+            "non_finite",
+            Some("descriptors"),
+        ),
+        (
+            "descriptors",
+            mutated(&si, |s| {
+                let mut t = s.descriptors.to_f32_vec();
+                t[0] = 0.5;
+                s.descriptors = Floats::F32(t.into());
+            }),
+            "invalid",
+            Some("descriptors"),
+        ),
+        (
+            "invalid",
+            mutated(&si, |s| set(&mut s.share, 3, 9)),
+            "invalid",
+            Some("share"),
+        ),
+    ]);
+    Case {
+        stem: "semantic_index",
+        valid: v,
+        invalid: inv,
     }
 }
 
@@ -1492,6 +1574,7 @@ fn cases() -> Vec<Case> {
     });
     cases.push(fuse_partial_case());
     cases.push(warp_partial_case());
+    cases.push(semantic_index_case());
 
     cases
 }

@@ -1,4 +1,4 @@
-//! Each kind's checks without the `format` gate: the first byte picks the kind (15), the
+//! Each kind's checks without the `format` gate: the first byte picks the kind (17), the
 //! rest is the container, read and validated as that kind whatever its metadata says, so
 //! mutations reach every kind's shape and value rules.
 #![no_main]
@@ -6,7 +6,8 @@
 use libfuzzer_sys::fuzz_target;
 use profuse_formats::{
     Cameras, Container, Features, FileKind, FusePartial, Gaussians, Masks, Matches, Mesh, Pq,
-    Prompts, Proposals, Selection, SparseMatches, TopK, VertexLabels, ViewMaps,
+    Prompts, Proposals, Selection, SemanticIndex, SparseMatches, TopK, VertexLabels, ViewMaps,
+    WarpPartial,
 };
 
 fn check<K: FileKind>(c: &Container) {
@@ -24,7 +25,7 @@ fuzz_target!(|data: &[u8]| {
     let Ok(c) = Container::from_vec("fuzz.safetensors", rest.to_vec()) else {
         return;
     };
-    match which % 15 {
+    match which % 17 {
         0 => check::<Cameras>(&c),
         1 => check::<Gaussians>(&c),
         2 => check::<Masks>(&c),
@@ -39,6 +40,8 @@ fuzz_target!(|data: &[u8]| {
         11 => check::<Mesh>(&c),
         12 => check::<ViewMaps>(&c),
         13 => check::<TopK>(&c),
-        _ => check::<FusePartial>(&c),
+        14 => check::<FusePartial>(&c),
+        15 => check::<SemanticIndex>(&c),
+        _ => check::<WarpPartial>(&c),
     }
 });

@@ -18,6 +18,7 @@ pub mod metrics;
 pub mod pq;
 pub mod query;
 pub mod raster;
+pub mod semantics;
 pub mod vertex_transfer;
 pub mod warp_graph;
 

@@ -44,12 +44,23 @@ pub struct Params {
     /// Repetitions per measurement (the fastest is reported).
     #[arg(long, default_value_t = 3)]
     pub repeat: usize,
+    /// Instead of the stage benchmark: one text query (relevancy, selection included)
+    /// over --gaussians Gaussians with this semantics, and with PQ codes in the same run;
+    /// prints `query_us` and `bytes_per_gaussian` of both (issue 24).
+    #[arg(long, value_enum)]
+    pub semantics: Option<profuse_query::Semantics>,
+    /// Proposals P of the semantic index (--semantics).
+    #[arg(long, default_value_t = 1000)]
+    pub proposals: usize,
 }
 
 /// Runs the benchmark.
 pub fn run(a: &Params) -> Result<Value, BoxError> {
     if a.dim == 0 || a.m == 0 || !a.dim.is_multiple_of(a.m) {
         return Err(format!("--dim {} must be a positive multiple of --m {}", a.dim, a.m).into());
+    }
+    if let Some(semantics) = a.semantics {
+        return crate::semantics::run(a, semantics);
     }
     let d = a.dim;
     let mut rng = SplitMix(SplitMix64::new(0x9e37_79b9));
@@ -146,7 +157,7 @@ pub fn run(a: &Params) -> Result<Value, BoxError> {
 }
 
 /// Seconds of the fastest of `repeat` runs of `f` (at least one).
-fn fastest<T, E: Into<BoxError>>(
+pub(crate) fn fastest<T, E: Into<BoxError>>(
     repeat: usize,
     mut f: impl FnMut() -> Result<T, E>,
 ) -> Result<f64, BoxError> {
@@ -177,7 +188,7 @@ fn random_features(rng: &mut SplitMix, n: usize, d: usize) -> Features {
     }
 }
 
-fn random_pq(
+pub(crate) fn random_pq(
     rng: &mut SplitMix,
     n: usize,
     d: usize,
@@ -197,10 +208,10 @@ fn random_pq(
 }
 
 /// The workspace's SplitMix64 with Box–Muller normals, for benchmark data.
-struct SplitMix(SplitMix64);
+pub(crate) struct SplitMix(pub(crate) SplitMix64);
 
 impl SplitMix {
-    fn next(&mut self) -> u64 {
+    pub(crate) fn next(&mut self) -> u64 {
         self.0.next_u64()
     }
 
@@ -209,7 +220,7 @@ impl SplitMix {
     }
 
     /// A standard normal sample (Box-Muller).
-    fn normal(&mut self) -> f32 {
+    pub(crate) fn normal(&mut self) -> f32 {
         let (u, v) = (self.uniform(), self.uniform());
         ((-2.0 * (1.0 - u).ln()).sqrt() * (std::f64::consts::TAU * v).cos()) as f32
     }

@@ -8,6 +8,9 @@ use splat_raster::RasterError;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum FuseError {
+    /// The semantic index's `min_share` is not a share in [0, 1].
+    #[error("fuse min_share = {0}: expected a share in [0, 1]")]
+    MinShare(f64),
     /// A file could not be read or written, or breaks a rule of its kind (SPEC.md), or a
     /// partial-sums file breaks a rule of its layout (see [`crate::PartialSums`]).
     #[error(transparent)]

@@ -246,14 +246,19 @@ fn descriptor(desc: &[f64], d: usize, groups: &[u32], qs: &[u128], a: &mut [f64]
 /// A row of W mapped to the descriptor table's rows, with the entries of groups that share
 /// a row added up (exactly, in fixed point), in ascending row order.
 #[derive(Default)]
-struct Columns {
+pub(crate) struct Columns {
     pairs: Vec<(u32, u128)>,
     rows: Vec<u32>,
     sums: Vec<u128>,
 }
 
 impl Columns {
-    fn gather(&mut self, column: &[u32], groups: &[u32], qs: &[u128]) -> (&[u32], &[u128]) {
+    pub(crate) fn gather(
+        &mut self,
+        column: &[u32],
+        groups: &[u32],
+        qs: &[u128],
+    ) -> (&[u32], &[u128]) {
         self.pairs.clear();
         self.pairs.extend(
             groups
@@ -280,9 +285,9 @@ impl Columns {
 
 /// The descriptors W is multiplied with: `rows` [R, D] in f64 and the row of every group
 /// (`None`: group g is row g).
-struct Table {
-    rows: Vec<f64>,
-    column: Option<Vec<u32>>,
+pub(crate) struct Table {
+    pub(crate) rows: Vec<f64>,
+    pub(crate) column: Option<Vec<u32>>,
 }
 
 impl Table {
@@ -300,7 +305,7 @@ impl Table {
 /// own). A weight this close to 1 moves a descriptor by < 1e-9, far below F32 rounding.
 const FULL_BLEND: f64 = 1.0 - 1e-9;
 
-fn descriptor_table(p: &PartialSums) -> Table {
+pub(crate) fn descriptor_table(p: &PartialSums) -> Table {
     match p.groups.grouping {
         Grouping::Proposals { .. } | Grouping::Masks => Table {
             rows: pooled_groups(p),

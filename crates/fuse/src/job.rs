@@ -62,6 +62,9 @@ pub struct Params {
     pub no_proposals: bool,
     /// `proposals` (paper) or `blend`; ignored with `no_proposals`.
     pub registration: Register,
+    /// Semantic index: the smallest share of a Gaussian's weight its largest proposal
+    /// must hold to be its dominant proposal (in [0, 1]; stored in units of 1/255).
+    pub min_share: f64,
 }
 
 impl Default for Params {
@@ -71,6 +74,7 @@ impl Default for Params {
             orphans: Orphans::default(),
             no_proposals: false,
             registration: Register::default(),
+            min_share: crate::DEFAULT_MIN_SHARE,
         }
     }
 }
@@ -95,6 +99,8 @@ pub struct Job {
     pub views: Option<Range<usize>>,
     /// Storage precision of the descriptors; `None` = that of the mask features.
     pub precision: Option<Precision>,
+    /// The semantic index to write beside the features (profuse.semantic_index).
+    pub semantic_index: Option<PathBuf>,
 }
 
 impl Job {
@@ -109,6 +115,7 @@ impl Job {
             partial_out: None,
             views: None,
             precision: None,
+            semantic_index: None,
         }
     }
 
@@ -202,6 +209,15 @@ pub struct Report {
         serialize_with = "profuse_formats::output::lossy_path::option"
     )]
     pub partial_out: Option<PathBuf>,
+    /// The semantic index written (profuse.semantic_index).
+    #[serde(
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "profuse_formats::output::lossy_path::option"
+    )]
+    pub semantic_index: Option<PathBuf>,
+    /// Gaussians with a dominant proposal in the semantic index.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dominant: Option<usize>,
     /// Reading the inputs.
     pub load_s: f64,
     /// Rendering the top-K buffers.
@@ -233,6 +249,7 @@ fn name(p: &Path) -> String {
 /// Runs a job: reads the inputs, accumulates over the views (calling `on_view` after
 /// each), writes the partial sums and/or the features (atomically), and reports.
 pub fn run(job: &Job, params: &Params, on_view: &mut dyn FnMut(&ViewReport)) -> Result<Run> {
+    check_min_share(params)?;
     let t0 = Instant::now();
     let gaussians = Gaussians::read(&job.gaussians)?;
     let cameras = Cameras::read(&job.cameras)?;
@@ -257,6 +274,7 @@ pub fn run(job: &Job, params: &Params, on_view: &mut dyn FnMut(&ViewReport)) -> 
             .precision
             .unwrap_or_else(|| Precision::of(&masks.features));
         write_features(&partial, precision, out, &mut report)?;
+        write_semantic_index(job, params, &partial, precision, &mut report)?;
     }
     report.seconds = t1.elapsed().as_secs_f64();
     Ok(Run { report, partial })
@@ -269,6 +287,7 @@ pub fn run(job: &Job, params: &Params, on_view: &mut dyn FnMut(&ViewReport)) -> 
 /// of the masks, the mask features), so a shard left over from other inputs is refused
 /// ([`crate::FuseError::ShardOfOtherInputs`]) instead of being summed.
 pub fn run_merged(job: &Job, params: &Params, partials: &[PathBuf]) -> Result<Run> {
+    check_min_share(params)?;
     let t0 = Instant::now();
     let gaussians = Gaussians::read(&job.gaussians)?;
     let cameras = Cameras::read(&job.cameras)?;
@@ -300,6 +319,7 @@ pub fn run_merged(job: &Job, params: &Params, partials: &[PathBuf]) -> Result<Ru
             .precision
             .unwrap_or_else(|| Precision::of(&masks.features));
         write_features(&merged, precision, out, &mut report)?;
+        write_semantic_index(job, params, &merged, precision, &mut report)?;
     }
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(Run {
@@ -363,6 +383,33 @@ fn write_features(
     Ok(())
 }
 
+/// `min_share` must be a share, checked before anything is read or written.
+fn check_min_share(params: &Params) -> Result<()> {
+    if (0.0..=1.0).contains(&params.min_share) {
+        Ok(())
+    } else {
+        Err(crate::FuseError::MinShare(params.min_share))
+    }
+}
+
+/// Writes the job's semantic index (if it names one) from the same sums as its features.
+fn write_semantic_index(
+    job: &Job,
+    params: &Params,
+    partial: &PartialSums,
+    precision: Precision,
+    report: &mut Report,
+) -> Result<()> {
+    let Some(path) = &job.semantic_index else {
+        return Ok(());
+    };
+    let index = crate::semantic_index(partial, precision, params.min_share);
+    index.write(path)?;
+    report.semantic_index = Some(path.clone());
+    report.dominant = index.counts().get("dominant").map(|d| *d as usize);
+    Ok(())
+}
+
 /// The groups the job registers: its proposals under the parameters, or one per mask.
 fn job_groups(job: &Job, params: &Params, masks: &Masks) -> Result<Groups> {
     match &job.proposals {
@@ -400,6 +447,8 @@ fn base_report(p: &PartialSums, views: [usize; 2], load_s: f64) -> Report {
         precision: None,
         out: None,
         partial_out: None,
+        semantic_index: None,
+        dominant: None,
         load_s,
         raster_s: t.raster_s,
         accumulate_s: t.accumulate_s,

@@ -106,6 +106,7 @@ mod finish;
 mod groups;
 pub mod job;
 mod partial;
+mod semantic;
 #[doc(hidden)]
 pub mod testing;
 
@@ -122,6 +123,7 @@ pub use finish::{
 };
 pub use groups::{Grouping, Groups, Orphans, NO_GROUP};
 pub use partial::{merge, PartialSums, Timings, PARTIAL_FORMAT, PARTIAL_VERSION};
+pub use semantic::{semantic_index, DEFAULT_MIN_SHARE};
 
 use accumulate::{Accumulator, LabelPlane, TileHits, ViewContext, ViewRows};
 

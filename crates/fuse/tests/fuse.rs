@@ -1569,3 +1569,148 @@ fn blend_partial_files_are_checked() {
     assert!(matches!(err, FuseError::BadGrouping { .. }), "{err}");
     assert!(err.to_string().contains(&format!("mask {orphan}")), "{err}");
 }
+
+// ---------------------------------------------------------------------------------------
+// Semantic index (issue 24).
+
+/// Brute force over one Gaussian's W row mapped to table rows: the row with the most
+/// weight (ties to the lower row) and its share, from `WeightMatrix::get` per group.
+fn brute_dominant(p: &PartialSums, g: usize, row_of: &dyn Fn(u32) -> u32) -> Option<(u32, f64)> {
+    let mut per_row: std::collections::BTreeMap<u32, f64> = Default::default();
+    for group in 0..p.groups().num_groups as u32 {
+        let w = p.weights().get(g, group);
+        if w > 0.0 {
+            *per_row.entry(row_of(group)).or_default() += w;
+        }
+    }
+    let total: f64 = per_row.values().sum();
+    let (row, w) = per_row
+        .iter()
+        .fold(None::<(u32, f64)>, |best, (r, w)| match best {
+            Some((_, b)) if b >= *w => best,
+            _ => Some((*r, *w)),
+        })?;
+    Some((row, w / total))
+}
+
+#[test]
+fn semantic_index_matches_the_brute_force_dominant_proposal() {
+    let fx = tiny(3, 9000);
+    for orphans in [Orphans::Ignore, Orphans::Singleton] {
+        let groups = fx.groups_with_orphans(orphans);
+        let partial = accumulate(&fx.scene(), &groups, 10, 0..4, &mut |_| {}).unwrap();
+        let reg = finish(&partial, Precision::F32);
+        let index = profuse_fuse::semantic_index(&partial, Precision::F32, 0.5);
+        index.validate("index").unwrap();
+        assert_eq!(index.min_share, 128);
+        assert_eq!(index.num_proposals(), groups.num_groups);
+        // The table is the group descriptors of the registration.
+        let table: Vec<f32> = profuse_fuse::group_descriptors(&partial)
+            .iter()
+            .map(|x| *x as f32)
+            .collect();
+        assert_eq!(index.descriptors.to_f32_vec(), table);
+        let d = index.dim;
+        let (mut mixed, mut single) = (0, 0);
+        for g in 0..index.num_gaussians() {
+            let want = brute_dominant(&partial, g, &|group| group);
+            assert_eq!(index.proposal(g), want.map(|w| w.0), "g {g}");
+            let share = want.map_or(0, |w| profuse_formats::quantise_share(w.1));
+            assert!(
+                index.share[g].abs_diff(share) <= 1,
+                "g {g}: share {} vs {share}",
+                index.share[g]
+            );
+            let (groups_of_g, _) = partial.weights().row(g);
+            if groups_of_g.len() == 1 && reg.features.valid[g] == 1 {
+                // All its weight in one proposal: its descriptor is that table row.
+                single += 1;
+                assert_eq!(index.share[g], 255);
+                let r = index.proposal(g).unwrap() as usize;
+                let f = reg.features.features.to_f32_vec();
+                assert_eq!(f[g * d..][..d], table[r * d..][..d], "g {g}");
+            } else if groups_of_g.len() > 1 {
+                mixed += 1;
+            }
+        }
+        assert!(
+            single > 1000 && mixed > 100,
+            "{single} single, {mixed} mixed"
+        );
+        let counts = profuse_formats::FileKind::counts(&index);
+        assert_eq!(
+            counts["indexed"] as usize,
+            (0..reg.features.len())
+                .filter(|&g| !partial.weights().row(g).0.is_empty())
+                .count()
+        );
+    }
+}
+
+#[test]
+fn semantic_index_under_blend_indexes_the_registered_rows() {
+    let fx = tiny(3, 6000);
+    let groups = fx.blend_groups(Orphans::Singleton);
+    let partial = accumulate(&fx.scene(), &groups, 10, 0..4, &mut |_| {}).unwrap();
+    let reg = finish(&partial, Precision::F32);
+    let index = profuse_fuse::semantic_index(&partial, Precision::F32, 0.5);
+    index.validate("index").unwrap();
+    // Each mask's registered descriptor is a row of the table (masks that keep their
+    // proposal's descriptor share its row).
+    let d = index.dim;
+    let table = index.descriptors.to_f32_vec();
+    let rows: Vec<&[f32]> = table.chunks_exact(d).collect();
+    let mask_rows: Vec<Option<u32>> = registered_mask_descriptors(&partial)
+        .iter()
+        .map(|m| {
+            m.as_ref()
+                .map(|f| rows.iter().position(|r| *r == f.as_slice()).unwrap() as u32)
+        })
+        .collect();
+    let group_row = |group: u32| mask_rows[group as usize].unwrap();
+    for g in 0..index.num_gaussians() {
+        let want = brute_dominant(&partial, g, &group_row);
+        assert_eq!(index.proposal(g), want.map(|w| w.0), "g {g}");
+    }
+    assert!(reg.summary.valid > 1000);
+}
+
+#[test]
+fn job_writes_the_semantic_index_and_refuses_a_bad_min_share() {
+    use profuse_fuse::job::{run, Job, Params};
+    let fx = tiny(23, 3000);
+    let dir = tempfile::tempdir().unwrap();
+    let file = |n: &str| dir.path().join(n);
+    fx.proposals(1)
+        .write(file("proposals.safetensors"))
+        .unwrap();
+    let mut job = Job::new(
+        &fx.path.join("gt/gaussians.safetensors"),
+        &fx.path.join("cameras.safetensors"),
+        &fx.path.join("masks.safetensors"),
+    )
+    .with_proposals(&file("proposals.safetensors"))
+    .with_out(&file("features.safetensors"));
+    job.semantic_index = Some(file("index.safetensors"));
+    let bad = Params {
+        min_share: 1.5,
+        ..Params::default()
+    };
+    let err = run(&job, &bad, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, FuseError::MinShare(_)), "{err}");
+    assert!(!file("features.safetensors").exists() && !file("index.safetensors").exists());
+    let report = run(&job, &Params::default(), &mut |_| {}).unwrap().report;
+    let index = profuse_formats::SemanticIndex::read(file("index.safetensors")).unwrap();
+    let features = profuse_formats::Features::read(file("features.safetensors")).unwrap();
+    assert_eq!(index.num_gaussians(), features.len());
+    assert_eq!(
+        report.dominant,
+        Some(profuse_formats::FileKind::counts(&index)["dominant"] as usize)
+    );
+    // Same precision as the features (the masks' F16 here), and a Gaussian with weight
+    // has a proposal exactly when it has a descriptor.
+    assert_eq!(index.descriptors.dtype(), features.features.dtype());
+    for g in 0..features.len() {
+        assert_eq!(index.proposal(g).is_some(), features.valid[g] == 1, "g {g}");
+    }
+}

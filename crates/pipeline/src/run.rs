@@ -158,6 +158,9 @@ pub struct Paths {
     pub features: PathBuf,
     /// `out/pq[_baseline].safetensors`.
     pub pq: PathBuf,
+    /// `out/semantic_index[_baseline].safetensors` (written with `query.semantics` index
+    /// or both).
+    pub semantic_index: PathBuf,
     /// `out/query[_baseline]/`.
     pub query: PathBuf,
     /// Per class set of the ScanNet protocol ([`SCANNET_SETS`]), the labelling with that
@@ -198,6 +201,7 @@ impl Paths {
             proposals: out.join("proposals.safetensors"),
             features: out.join(format!("features{suffix}.safetensors")),
             pq: out.join(format!("pq{suffix}.safetensors")),
+            semantic_index: out.join(format!("semantic_index{suffix}.safetensors")),
             query: out.join(format!("query{suffix}")),
             vertex_labels: SCANNET_SETS
                 .iter()
@@ -732,9 +736,12 @@ fn fuse_stage(
         fuse_name,
         to_json(&config.fuse),
         fuse_inputs,
-        vec![p.features.clone()],
+        fuse_outputs(config, p),
         || {
-            let job = fuse_job(config, p).with_out(&p.features);
+            let mut job = fuse_job(config, p).with_out(&p.features);
+            if config.query.semantics.needs_index() {
+                job.semantic_index = Some(p.semantic_index.clone());
+            }
             let run = if partials.is_empty() {
                 let views = Cameras::read(&p.cameras).map_or(0, |c| c.len());
                 let mut done = 0;
@@ -753,6 +760,55 @@ fn fuse_stage(
         },
     )?;
     Ok((line, registered))
+}
+
+/// The fuse stage's files: the features, and the semantic index when the query reads one.
+fn fuse_outputs(config: &Config, p: &Paths) -> Vec<PathBuf> {
+    let mut out = vec![p.features.clone()];
+    if config.query.semantics.needs_index() {
+        out.push(p.semantic_index.clone());
+    }
+    out
+}
+
+/// The per-Gaussian semantics files the query and vertex-transfer stages read.
+fn semantics_files(config: &Config, p: &Paths) -> Vec<PathBuf> {
+    let s = config.query.semantics;
+    let mut files = Vec::new();
+    if s.needs_index() {
+        files.push(p.semantic_index.clone());
+    }
+    if s.needs_pq() {
+        files.push(p.pq.clone());
+    }
+    files
+}
+
+/// The query's descriptors under `query.semantics`.
+fn query_descriptors(config: &Config, p: &Paths) -> profuse_query::DescriptorPath {
+    use profuse_query::{DescriptorPath, Semantics};
+    match config.query.semantics {
+        Semantics::Pq => DescriptorPath::Pq(p.pq.clone()),
+        Semantics::Index => DescriptorPath::Indexed {
+            index: p.semantic_index.clone(),
+            fallback: None,
+        },
+        Semantics::Both => DescriptorPath::Indexed {
+            index: p.semantic_index.clone(),
+            fallback: Some(p.pq.clone()),
+        },
+    }
+}
+
+/// vertex-transfer's descriptors under `query.semantics`.
+fn transfer_descriptors(config: &Config, p: &Paths) -> vertex_transfer::DescriptorFile {
+    use vertex_transfer::DescriptorFile;
+    match query_descriptors(config, p) {
+        profuse_query::DescriptorPath::Indexed { index, fallback } => {
+            DescriptorFile::Indexed { index, fallback }
+        }
+        _ => DescriptorFile::Pq(p.pq.clone()),
+    }
 }
 
 /// pq: features -> pq.
@@ -774,12 +830,9 @@ fn pq_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine> {
 /// query: gaussians + cameras + pq + prompts -> masks per (view, prompt) + selections.
 fn query_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLine> {
     let prompts = query_prompts(config, p)?;
-    let mut query_inputs = vec![
-        p.gaussians.clone(),
-        p.cameras.clone(),
-        p.pq.clone(),
-        p.prompts.clone(),
-    ];
+    let mut query_inputs = vec![p.gaussians.clone(), p.cameras.clone()];
+    query_inputs.extend(semantics_files(config, p));
+    query_inputs.push(p.prompts.clone());
     if let Some(l) = p.labels() {
         query_inputs.push(l);
     }
@@ -807,19 +860,18 @@ fn vertex_transfer_stage(
         r,
         &format!("vertex-transfer{}", p.suffix),
         json!({ "vertex_transfer": to_json(&config.vertex_transfer), "class_sets": sets }),
-        vec![
-            p.gaussians.clone(),
-            p.pq.clone(),
-            p.prompts.clone(),
-            mesh.to_path_buf(),
-        ],
+        [p.gaussians.clone()]
+            .into_iter()
+            .chain(semantics_files(config, p))
+            .chain([p.prompts.clone(), mesh.to_path_buf()])
+            .collect(),
         p.vertex_labels.iter().map(|(_, f)| f.clone()).collect(),
         || {
             let mut reports = serde_json::Map::new();
             for (set, out) in &p.vertex_labels {
                 let job = vertex_transfer::Job {
                     gaussians: p.gaussians.clone(),
-                    descriptors: vertex_transfer::DescriptorFile::Pq(p.pq.clone()),
+                    descriptors: transfer_descriptors(config, p),
                     prompts: p.prompts.clone(),
                     classes: None,
                     // NYU40 ids are 1..=40: they fit i32.
@@ -933,7 +985,7 @@ fn run_query(
     let inputs = profuse_query::Inputs::load(
         &p.gaussians,
         &p.cameras,
-        &profuse_query::DescriptorPath::Pq(p.pq.clone()),
+        &query_descriptors(config, p),
         &p.prompts,
     )
     .map_err(stage_err("query"))?;

@@ -131,6 +131,7 @@ mod params;
 mod pipeline;
 mod score;
 mod select;
+mod semantic;
 pub mod stats;
 
 pub use activation::{activation, Activation, Membership};
@@ -150,3 +151,4 @@ pub use score::{
     CANONICAL_NEGATIVES, INVALID_SCORE, RELEVANCY_TEMPERATURE,
 };
 pub use select::{select, ActiveSet, Rule};
+pub use semantic::{select_indexed, IndexQuery, Indexed, Semantics};

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::{ScoreKind, DEFAULT_GAMMA, DEFAULT_RELEVANCY_THRESHOLD, DEFAULT_TOP_K};
+use crate::{ScoreKind, Semantics, DEFAULT_GAMMA, DEFAULT_RELEVANCY_THRESHOLD, DEFAULT_TOP_K};
 
 /// What a pipeline's query stage selects with. The defaults are the LERF-style evaluation's:
 /// relevancy against the canonical negatives, selected where the prompt beats every
@@ -23,6 +23,10 @@ pub struct Params {
     pub prompts: Vec<String>,
     /// Also write overlays of the selections on the rendered views.
     pub overlay: bool,
+    /// Per-Gaussian semantics the query and vertex-transfer stages read: `pq` (codes of
+    /// every Gaussian), `index` (fuse's semantic index: dominant proposal per Gaussian) or
+    /// `both` (the index, with PQ codes for Gaussians without a dominant proposal).
+    pub semantics: Semantics,
 }
 
 impl Default for Params {
@@ -34,6 +38,7 @@ impl Default for Params {
             k: DEFAULT_TOP_K,
             prompts: Vec::new(),
             overlay: true,
+            semantics: Semantics::Pq,
         }
     }
 }

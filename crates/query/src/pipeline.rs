@@ -8,6 +8,7 @@ use std::time::Instant;
 use image::ExtendedColorType;
 use profuse_formats::{
     camera, format_float, Cameras, Features, FileKind, Gaussians, Pq, Prompts, Selection,
+    SemanticIndex,
 };
 use serde::Serialize;
 use splat_raster::{Rasterizer, RenderOptions};
@@ -17,6 +18,7 @@ use crate::error::{io_err, QueryError, Result};
 use crate::output::{create_dir, overlay, write_png};
 use crate::score::{score_prompts, Descriptors, ScoreKind, CANONICAL_NEGATIVES};
 use crate::select::{select, ActiveSet, Rule};
+use crate::semantic::Indexed;
 
 /// Default number of top-K contributors per pixel (design.md, splat-raster).
 pub const DEFAULT_TOP_K: usize = 10;
@@ -34,13 +36,22 @@ pub enum DescriptorPath {
     Features(PathBuf),
     /// A `profuse.pq` file (scored by asymmetric distance).
     Pq(PathBuf),
+    /// A `profuse.semantic_index` file, with the pq file its Gaussians without a dominant
+    /// proposal fall back to (`--semantics both`).
+    Indexed {
+        /// The semantic index.
+        index: PathBuf,
+        /// The PQ codes of the same Gaussians.
+        fallback: Option<PathBuf>,
+    },
 }
 
 impl DescriptorPath {
-    /// The file.
+    /// The file (the semantic index for [`DescriptorPath::Indexed`]).
     pub fn path(&self) -> &Path {
         match self {
             DescriptorPath::Features(p) | DescriptorPath::Pq(p) => p,
+            DescriptorPath::Indexed { index, .. } => index,
         }
     }
 }
@@ -52,6 +63,8 @@ pub enum DescriptorSet {
     Features(Features),
     /// From a pq file.
     Pq(Pq),
+    /// From a semantic index, with its PQ fallback.
+    Indexed(SemanticIndex, Option<Pq>),
 }
 
 impl DescriptorSet {
@@ -60,6 +73,21 @@ impl DescriptorSet {
         Ok(match path {
             DescriptorPath::Features(p) => DescriptorSet::Features(Features::read(p)?),
             DescriptorPath::Pq(p) => DescriptorSet::Pq(Pq::read(p)?),
+            DescriptorPath::Indexed { index, fallback } => {
+                let si = SemanticIndex::read(index)?;
+                let pq = fallback.as_ref().map(Pq::read).transpose()?;
+                if let (Some(pq), Some(pq_path)) = (&pq, fallback) {
+                    if pq.len() != si.num_gaussians() {
+                        return Err(QueryError::CountMismatch {
+                            descriptors: pq_path.display().to_string(),
+                            descriptor_count: pq.len(),
+                            gaussians: index.display().to_string(),
+                            gaussian_count: si.num_gaussians(),
+                        });
+                    }
+                }
+                DescriptorSet::Indexed(si, pq)
+            }
         })
     }
 
@@ -68,6 +96,10 @@ impl DescriptorSet {
         match self {
             DescriptorSet::Features(f) => Descriptors::Features(f),
             DescriptorSet::Pq(p) => Descriptors::Pq(p),
+            DescriptorSet::Indexed(index, fallback) => Descriptors::Indexed(Indexed {
+                index,
+                fallback: fallback.as_ref(),
+            }),
         }
     }
 }

@@ -4,6 +4,7 @@ use profuse_formats::{Features, Floats, Pq, Prompts};
 use rayon::prelude::*;
 
 use crate::error::{QueryError, Result};
+use crate::semantic::Indexed;
 
 /// The descriptor dot product (f32, fixed summation order), shared with vertex-transfer.
 pub use profuse_pq::dot;
@@ -51,6 +52,9 @@ pub enum Descriptors<'a> {
     Features(&'a Features),
     /// PQ codes.
     Pq(&'a Pq),
+    /// A semantic index: each Gaussian scored through its dominant proposal's descriptor
+    /// (or its PQ code where it has none and codes are given).
+    Indexed(Indexed<'a>),
 }
 
 impl Descriptors<'_> {
@@ -59,6 +63,7 @@ impl Descriptors<'_> {
         match self {
             Descriptors::Features(f) => f.len(),
             Descriptors::Pq(p) => p.len(),
+            Descriptors::Indexed(x) => x.len(),
         }
     }
 
@@ -72,6 +77,7 @@ impl Descriptors<'_> {
         match self {
             Descriptors::Features(f) => f.dim,
             Descriptors::Pq(p) => p.dim(),
+            Descriptors::Indexed(x) => x.index.dim,
         }
     }
 
@@ -80,6 +86,7 @@ impl Descriptors<'_> {
         match self {
             Descriptors::Features(f) => f.valid.get(i) == Some(&1),
             Descriptors::Pq(p) => p.valid.get(i) == Some(&1),
+            Descriptors::Indexed(x) => i < x.len() && x.is_valid(i),
         }
     }
 
@@ -88,6 +95,7 @@ impl Descriptors<'_> {
         let valid = match self {
             Descriptors::Features(f) => &f.valid,
             Descriptors::Pq(p) => &p.valid,
+            Descriptors::Indexed(x) => return (0..x.len()).filter(|&g| x.is_valid(g)).count(),
         };
         valid.iter().filter(|v| **v == 1).count()
     }
@@ -108,13 +116,14 @@ impl Descriptors<'_> {
         match self {
             Descriptors::Features(f) => Ok(exact_cosines(f, units)),
             Descriptors::Pq(p) => pq_cosines(p, units),
+            Descriptors::Indexed(x) => x.cosines(units),
         }
     }
 }
 
 /// Exact cosines: the descriptor is divided by its own norm, so F16 rounding of a
 /// stored unit vector does not bias the score.
-fn exact_cosines(f: &Features, units: &[Vec<f32>]) -> Vec<Vec<f32>> {
+pub(crate) fn exact_cosines(f: &Features, units: &[Vec<f32>]) -> Vec<Vec<f32>> {
     let (n, d, q) = (f.len(), f.dim, units.len());
     if q == 0 {
         return Vec::new();

@@ -1507,3 +1507,206 @@ fn exported_selection_round_trips_through_the_inria_ply_reader() {
         "{err}"
     );
 }
+
+// ---------------------------------------------------------------- semantic index (issue 24)
+
+/// P random unit proposal descriptors (D = 8), N Gaussians spread over them, and a PQ
+/// (M = 2, dsub = 4) whose centroid k of each subspace is proposal k's sub-vector, so a
+/// Gaussian coded (k, k) decodes to proposal k's descriptor exactly.
+fn lossless_index_and_pq(
+    p: usize,
+    n: usize,
+    seed: u64,
+) -> (
+    profuse_formats::SemanticIndex,
+    profuse_formats::Pq,
+    Vec<Vec<f32>>,
+) {
+    let (d, m, dsub) = (8, 2, 4);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let table: Vec<Vec<f32>> = (0..p)
+        .map(|_| {
+            let v: Vec<f32> = (0..d).map(|_| rng.random_range(-1.0..1.0)).collect();
+            profuse_query::unit_vector(&v).unwrap()
+        })
+        .collect();
+    let ids: Vec<Option<u32>> = (0..n)
+        .map(|_| Some(rng.random_range(0..p as u32)))
+        .collect();
+    let index = profuse_formats::SemanticIndex {
+        descriptors: Floats::F32(table.concat().into()),
+        dim: d,
+        index: profuse_formats::SemanticIndex::index_of(p, &ids),
+        share: vec![255u8; n].into(),
+        min_share: 128,
+        extra: Default::default(),
+    };
+    let mut centroids = vec![0f32; m * 256 * dsub];
+    for (k, row) in table.iter().enumerate() {
+        for s in 0..m {
+            centroids[(s * 256 + k) * dsub..][..dsub].copy_from_slice(&row[s * dsub..][..dsub]);
+        }
+    }
+    let book = profuse_pq::Codebook::new(m, dsub, centroids).unwrap();
+    let codes: Vec<u8> = ids.iter().flat_map(|i| [i.unwrap() as u8; 2]).collect();
+    let norms: Vec<f32> = codes
+        .chunks_exact(m)
+        .map(|c| book.decoded_norm(c))
+        .collect();
+    let pq = book.to_pq(codes, norms, vec![1u8; n]);
+    index.validate("index").unwrap();
+    (index, pq, table)
+}
+
+fn lerf_prompts(seed: u64, d: usize) -> Prompts {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let rows: Vec<Vec<f32>> = (0..6)
+        .map(|_| (0..d).map(|_| rng.random_range(-1.0..1.0)).collect())
+        .collect();
+    let refs: Vec<&[f32]> = rows.iter().map(|r| r.as_slice()).collect();
+    prompts(
+        &["mug", "chair", "object", "things", "stuff", "texture"],
+        &refs,
+    )
+}
+
+#[test]
+fn index_and_pq_modes_select_the_same_gaussians_when_every_gaussian_has_a_dominant_proposal() {
+    // Every Gaussian's weight is in one proposal (share 255) and the PQ reproduces the
+    // proposal descriptors exactly, so both modes score the same decoded vector per
+    // Gaussian: the scores agree to f32 rounding (ADC sums per subspace, the index path
+    // over the whole row), and the selections are identical for every rule.
+    let (index, pq, table) = lossless_index_and_pq(200, 5000, 11);
+    let p = lerf_prompts(12, 8);
+    let indexed = profuse_query::Indexed {
+        index: &index,
+        fallback: None,
+    };
+    for kind in [ScoreKind::Cosine, ScoreKind::Relevancy] {
+        let via_index = score_prompts(Descriptors::Indexed(indexed), &p, &[0, 1], kind).unwrap();
+        let via_pq = score_prompts(Descriptors::Pq(&pq), &p, &[0, 1], kind).unwrap();
+        for (qi, (a, b)) in via_index.iter().zip(&via_pq).enumerate() {
+            let q = profuse_query::IndexQuery::new(&indexed, &p, qi, kind).unwrap();
+            let worst = a
+                .iter()
+                .zip(b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f32::max);
+            assert!(worst < 1e-5, "{kind:?}: scores differ by {worst}");
+            let mut sorted: Vec<f32> = a.clone();
+            sorted.sort_by(f32::total_cmp);
+            // Thresholds between distinct scores (no Gaussian within rounding of them).
+            let gaps: Vec<f32> = sorted
+                .windows(2)
+                .filter(|w| w[1] - w[0] > 1e-4)
+                .map(|w| (w[0] + w[1]) / 2.0)
+                .step_by(7)
+                .collect();
+            assert!(gaps.len() > 10, "{kind:?}: too few gaps");
+            for t in gaps {
+                let (si, sp) = (
+                    select(a, Rule::Threshold(t)).unwrap(),
+                    select(b, Rule::Threshold(t)).unwrap(),
+                );
+                assert_eq!(si.ids, sp.ids, "{kind:?} threshold {t}");
+                // The fast path (no per-Gaussian scores) picks the same Gaussians.
+                let fast = q.select(&indexed, Rule::Threshold(t)).unwrap();
+                assert_eq!(fast, si, "{kind:?} fast path at {t}");
+            }
+        }
+    }
+    // And index mode is bit-identical to exact descriptors that are the proposals' rows.
+    let rows: Vec<&[f32]> = (0..index.num_gaussians())
+        .map(|g| table[index.proposal(g).unwrap() as usize].as_slice())
+        .collect();
+    let exact = features_f32(&rows, &vec![1; rows.len()]);
+    for kind in [ScoreKind::Cosine, ScoreKind::Relevancy] {
+        assert_eq!(
+            score_prompts(Descriptors::Indexed(indexed), &p, &[0, 1], kind).unwrap(),
+            score_prompts(Descriptors::Features(&exact), &p, &[0, 1], kind).unwrap()
+        );
+    }
+}
+
+#[test]
+fn flagged_gaussians_fall_back_to_their_pq_scores_and_the_fast_path_agrees() {
+    let (mut index, pq, _) = lossless_index_and_pq(50, 3000, 21);
+    // A third of the Gaussians mix proposals: their share drops below min_share, and
+    // their PQ code now encodes some other descriptor (proposal k in subspace 0 only).
+    let mut share = index.share.to_vec();
+    for g in (0..share.len()).step_by(3) {
+        share[g] = 100;
+    }
+    index.share = share.into();
+    let mut codes = pq.codes.to_vec();
+    for g in (0..index.num_gaussians()).step_by(3) {
+        codes[2 * g + 1] = (codes[2 * g] + 1) % 50;
+    }
+    let book = profuse_pq::Codebook::from_pq(&pq).unwrap();
+    let norms: Vec<f32> = codes
+        .chunks_exact(2)
+        .map(|c| book.decoded_norm(c))
+        .collect();
+    let pq = book.to_pq(codes, norms, vec![1u8; index.num_gaussians()]);
+    let p = lerf_prompts(22, 8);
+    let both = profuse_query::Indexed {
+        index: &index,
+        fallback: Some(&pq),
+    };
+    let only = profuse_query::Indexed {
+        index: &index,
+        fallback: None,
+    };
+    for kind in [ScoreKind::Cosine, ScoreKind::Relevancy] {
+        let s_both = score_prompts(Descriptors::Indexed(both), &p, &[0], kind).unwrap();
+        let s_only = score_prompts(Descriptors::Indexed(only), &p, &[0], kind).unwrap();
+        let s_pq = score_prompts(Descriptors::Pq(&pq), &p, &[0], kind).unwrap();
+        for g in 0..index.num_gaussians() {
+            if g % 3 == 0 {
+                // Bit for bit the pq mode's score.
+                assert_eq!(s_both[0][g].to_bits(), s_pq[0][g].to_bits(), "g {g}");
+            } else {
+                assert_eq!(s_both[0][g].to_bits(), s_only[0][g].to_bits(), "g {g}");
+            }
+        }
+        let q = profuse_query::IndexQuery::new(&both, &p, 0, kind).unwrap();
+        for rule in [
+            Rule::Threshold(if kind == ScoreKind::Cosine { 0.2 } else { 0.5 }),
+            Rule::TopFraction(0.1),
+        ] {
+            assert_eq!(
+                q.select(&both, rule).unwrap(),
+                select(&s_both[0], rule).unwrap(),
+                "{kind:?} {rule:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn gaussians_without_a_proposal_are_never_selected_by_index() {
+    let (mut index, _, _) = lossless_index_and_pq(10, 100, 31);
+    let mut ids: Vec<Option<u32>> = (0..100).map(|g| index.proposal(g)).collect();
+    let mut share = index.share.to_vec();
+    for g in (0..100).step_by(4) {
+        ids[g] = None;
+        share[g] = 0;
+    }
+    index.index = profuse_formats::SemanticIndex::index_of(10, &ids);
+    index.share = share.into();
+    let x = profuse_query::Indexed {
+        index: &index,
+        fallback: None,
+    };
+    let p = lerf_prompts(32, 8);
+    let s = score_prompts(Descriptors::Indexed(x), &p, &[0], ScoreKind::Cosine).unwrap();
+    let picked = profuse_query::IndexQuery::new(&x, &p, 0, ScoreKind::Cosine)
+        .unwrap()
+        .select(&x, Rule::Threshold(-2.0))
+        .unwrap();
+    assert_eq!(picked.len(), 75);
+    for g in (0..100).step_by(4) {
+        assert_eq!(s[0][g], INVALID_SCORE);
+        assert!(!picked.ids.contains(&(g as u32)));
+    }
+}

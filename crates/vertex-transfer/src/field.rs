@@ -6,7 +6,7 @@ use std::num::NonZeroUsize;
 
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
-use profuse_formats::{Features, FileKind, Gaussians, Pq, VertexLabels};
+use profuse_formats::{Features, FileKind, Gaussians, Pq, SemanticIndex, VertexLabels};
 use rayon::prelude::*;
 
 use crate::classes::ClassSet;
@@ -104,6 +104,15 @@ pub enum Descriptors<'a> {
     /// Product-quantised descriptors (a `pq` file), decoded with `profuse_pq::decode`
     /// one Gaussian at a time.
     Pq(Source<'a, Pq>),
+    /// A semantic index (issue 24): every Gaussian takes its dominant proposal's
+    /// descriptor (hence that proposal's class probabilities); with `fallback`, the
+    /// Gaussians without a dominant proposal take their decoded PQ code instead.
+    Indexed {
+        /// The semantic index.
+        index: Source<'a, SemanticIndex>,
+        /// PQ codes of the same Gaussians.
+        fallback: Option<Source<'a, Pq>>,
+    },
 }
 
 impl Descriptors<'_> {
@@ -111,6 +120,7 @@ impl Descriptors<'_> {
         match self {
             Descriptors::Features(f) => f.file,
             Descriptors::Pq(p) => p.file,
+            Descriptors::Indexed { index, .. } => index.file,
         }
     }
 
@@ -118,6 +128,29 @@ impl Descriptors<'_> {
         match self {
             Descriptors::Features(f) => f.data.validate(f.file)?,
             Descriptors::Pq(p) => p.data.validate(p.file)?,
+            Descriptors::Indexed { index, fallback } => {
+                index.data.validate(index.file)?;
+                if let Some(pq) = fallback {
+                    pq.data.validate(pq.file)?;
+                    if pq.data.len() != index.data.num_gaussians() {
+                        return Err(TransferError::CountMismatch {
+                            file: pq.file.to_string(),
+                            tensor: "codes",
+                            found: pq.data.len(),
+                            gaussians_file: index.file.to_string(),
+                            expected: index.data.num_gaussians(),
+                        });
+                    }
+                    if pq.data.dim() != index.data.dim {
+                        return Err(TransferError::DimMismatch {
+                            file: pq.file.to_string(),
+                            found: pq.data.dim(),
+                            prompts_file: index.file.to_string(),
+                            expected: index.data.dim,
+                        });
+                    }
+                }
+            }
         }
         Ok(())
     }
@@ -127,6 +160,7 @@ impl Descriptors<'_> {
         match self {
             Descriptors::Features(f) => (f.data.len(), "valid"),
             Descriptors::Pq(p) => (p.data.len(), "codes"),
+            Descriptors::Indexed { index, .. } => (index.data.num_gaussians(), "index"),
         }
     }
 
@@ -134,22 +168,46 @@ impl Descriptors<'_> {
         match self {
             Descriptors::Features(f) => f.data.dim,
             Descriptors::Pq(p) => p.data.dim(),
+            Descriptors::Indexed { index, .. } => index.data.dim,
+        }
+    }
+
+    /// The PQ codes Gaussian `g` falls back to, if it does.
+    fn fallback_of(&self, g: usize) -> Option<&Pq> {
+        match self {
+            Descriptors::Indexed {
+                index,
+                fallback: Some(pq),
+            } if !index.data.is_dominant(g) => Some(pq.data),
+            _ => None,
         }
     }
 
     fn is_valid(&self, g: usize) -> bool {
+        if let Some(pq) = self.fallback_of(g) {
+            return pq.valid[g] == 1;
+        }
         match self {
             Descriptors::Features(f) => f.data.valid[g] == 1,
             Descriptors::Pq(p) => p.data.valid[g] == 1,
+            Descriptors::Indexed { index, .. } => index.data.proposal(g).is_some(),
         }
     }
 
     /// Copies descriptor `g` into `out` (length D) as f32; inputs were validated, so
     /// the PQ tensors are consistent and `decode` cannot panic.
     fn read(&self, g: usize, out: &mut [f32]) {
+        if let Some(pq) = self.fallback_of(g) {
+            return profuse_pq::decode(pq, g, out);
+        }
         match self {
             Descriptors::Features(f) => f.data.features.read_into(g * f.data.dim, out),
             Descriptors::Pq(p) => profuse_pq::decode(p.data, g, out),
+            Descriptors::Indexed { index, .. } => {
+                let d = index.data.dim;
+                let row = index.data.proposal(g).unwrap_or(0) as usize;
+                index.data.descriptors.read_into(row * d, out);
+            }
         }
     }
 }

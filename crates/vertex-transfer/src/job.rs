@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use profuse_formats::{Features, FileKind, Gaussians, Mesh, Pq, Prompts};
+use profuse_formats::{Features, FileKind, Gaussians, Mesh, Pq, Prompts, SemanticIndex};
 use serde::Serialize;
 
 use crate::classes::ClassSet;
@@ -19,12 +19,21 @@ pub enum DescriptorFile {
     Features(PathBuf),
     /// A `pq` file (product-quantised descriptors).
     Pq(PathBuf),
+    /// A `semantic_index` file, with the `pq` file of its Gaussians without a dominant
+    /// proposal (`--semantics both`).
+    Indexed {
+        /// The semantic index.
+        index: PathBuf,
+        /// The PQ codes of the same Gaussians.
+        fallback: Option<PathBuf>,
+    },
 }
 
 /// A read descriptor file.
 enum Loaded {
     Features(Features),
     Pq(Pq),
+    Indexed(SemanticIndex, Option<(String, Pq)>),
 }
 
 /// Every path of one transfer.
@@ -119,6 +128,16 @@ pub fn run_job_with_progress(
     let (descriptor_file, loaded) = match &job.descriptors {
         DescriptorFile::Features(p) => (show(p), Loaded::Features(Features::read(p)?)),
         DescriptorFile::Pq(p) => (show(p), Loaded::Pq(Pq::read(p)?)),
+        DescriptorFile::Indexed { index, fallback } => {
+            let pq = match fallback {
+                Some(p) => Some((show(p), Pq::read(p)?)),
+                None => None,
+            };
+            (
+                show(index),
+                Loaded::Indexed(SemanticIndex::read(index)?, pq),
+            )
+        }
     };
     let prompts = Prompts::read(&job.prompts)?;
     let mesh = Mesh::read(&job.mesh)?;
@@ -140,6 +159,10 @@ pub fn run_job_with_progress(
         match &loaded {
             Loaded::Features(f) => Descriptors::Features(Source::new(&descriptor_file, f)),
             Loaded::Pq(p) => Descriptors::Pq(Source::new(&descriptor_file, p)),
+            Loaded::Indexed(index, fallback) => Descriptors::Indexed {
+                index: Source::new(&descriptor_file, index),
+                fallback: fallback.as_ref().map(|(file, pq)| Source::new(file, pq)),
+            },
         },
         &classes,
         params,

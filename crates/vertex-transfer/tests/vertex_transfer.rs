@@ -1193,3 +1193,115 @@ fn scannet_oracle_with_noisy_subsampled_features_keeps_its_scores() {
         assert!(*miou < 100.0, "{set}: noise should cost something");
     }
 }
+
+#[test]
+fn a_semantic_index_gives_each_gaussian_its_proposals_class_probabilities() {
+    // 12 "proposals" (noisy class prototypes), every valid Gaussian indexed to one of them:
+    // the index labels exactly as features whose rows are the proposals' descriptors, and
+    // probabilities() of each Gaussian are its proposal's. Flagged Gaussians with a PQ
+    // fallback take their decoded code instead.
+    let s = random_scene(600, 6.0, 17);
+    let d = 16;
+    let mut rng = Rng(SplitMix64::new(99));
+    let table: Vec<Vec<f64>> = (0..12)
+        .map(|i| {
+            s.p.embedding(i % 5)
+                .iter()
+                .map(|x| f64::from(*x) + 0.5 * rng.normal())
+                .collect()
+        })
+        .collect();
+    let ids: Vec<Option<u32>> = (0..s.g.len())
+        .map(|g| (s.f.valid[g] == 1).then(|| rng.below(12) as u32))
+        .collect();
+    let table_f32: Vec<f32> = table.iter().flat_map(|r| unit(r)).collect();
+    let mut share: Vec<u8> = ids
+        .iter()
+        .map(|i| if i.is_some() { 255 } else { 0 })
+        .collect();
+    for (g, sh) in share.iter_mut().enumerate() {
+        if g % 4 == 0 && *sh > 0 {
+            *sh = 60; // below min_share: flagged
+        }
+    }
+    let index = profuse_formats::SemanticIndex {
+        descriptors: profuse_formats::Floats::F32(table_f32.into()),
+        dim: d,
+        index: profuse_formats::SemanticIndex::index_of(12, &ids),
+        share: share.into(),
+        min_share: 128,
+        extra: Default::default(),
+    };
+    let rows: Vec<Option<Vec<f64>>> = ids
+        .iter()
+        .map(|i| i.map(|p| table[p as usize].clone()))
+        .collect();
+    let as_features = features(&rows, d);
+    let classes = ClassSet::from_prompts(Source::new("p", &s.p)).unwrap();
+    let params = Params::default();
+    let indexed = GaussianField::new(
+        Source::new("g", &s.g),
+        Descriptors::Indexed {
+            index: Source::new("index", &index),
+            fallback: None,
+        },
+        &classes,
+        &params,
+    )
+    .unwrap();
+    let exact = field(&s.g, &as_features, &s.p, &params);
+    let (a, b) = (
+        indexed.label_vertices(&s.vertices),
+        exact.label_vertices(&s.vertices),
+    );
+    assert_eq!(a.labels, b.labels);
+    for (x, y) in a.confidence.iter().zip(&b.confidence) {
+        assert!((x - y).abs() < 1e-5);
+    }
+    // Two Gaussians of one proposal have the same probabilities.
+    for p in 0..12u32 {
+        let members: Vec<usize> = (0..s.g.len()).filter(|g| ids[*g] == Some(p)).collect();
+        for g in &members[1..] {
+            assert_eq!(indexed.probabilities(*g), indexed.probabilities(members[0]));
+        }
+    }
+    // Fallback: flagged Gaussians take their PQ code's decoded descriptor.
+    let train = profuse_pq::TrainParams {
+        m: 4,
+        iters: 8,
+        ..profuse_pq::TrainParams::default()
+    };
+    let pq = profuse_pq::train(&s.f, &train)
+        .unwrap()
+        .encode_features(&s.f)
+        .unwrap();
+    let decoded = profuse_pq::decode_all(&pq);
+    let mixed: Vec<Option<Vec<f64>>> = (0..s.g.len())
+        .map(|g| {
+            if !index.is_dominant(g) {
+                (pq.valid[g] == 1).then(|| {
+                    decoded[g * d..][..d]
+                        .iter()
+                        .map(|v| f64::from(*v))
+                        .collect()
+                })
+            } else {
+                rows[g].clone()
+            }
+        })
+        .collect();
+    let both = GaussianField::new(
+        Source::new("g", &s.g),
+        Descriptors::Indexed {
+            index: Source::new("index", &index),
+            fallback: Some(Source::new("pq", &pq)),
+        },
+        &classes,
+        &params,
+    )
+    .unwrap()
+    .label_vertices(&s.vertices);
+    let reference = field(&s.g, &features(&mixed, d), &s.p, &params).label_vertices(&s.vertices);
+    assert_eq!(both.labels, reference.labels);
+    assert!(both.labels != a.labels, "the fallback changed nothing");
+}

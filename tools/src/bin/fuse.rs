@@ -124,6 +124,15 @@ struct RunArgs {
     /// Storage precision of the descriptors (auto = that of the mask features).
     #[arg(long, value_enum, default_value = "auto")]
     precision: PrecisionArg,
+    /// Also write the semantic index (profuse.semantic_index, needs --out): per Gaussian
+    /// its dominant proposal (U16 index) and that proposal's share of its weight, plus the
+    /// proposal descriptor table, for `query --semantic-index`.
+    #[arg(long, requires = "out")]
+    semantic_index: Option<PathBuf>,
+    /// Smallest share of a Gaussian's weight its largest proposal must hold to be its
+    /// dominant proposal (in [0, 1]); the others fall back to their PQ code in a query.
+    #[arg(long, default_value_t = profuse_fuse::DEFAULT_MIN_SHARE)]
+    min_share: f64,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -196,7 +205,13 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
 }
 
 fn run_command(a: RunArgs, show: bool) -> Result<Value, BoxError> {
-    check_outputs(a.out.iter().chain(&a.partial_out).map(|p| p.as_path()))?;
+    check_outputs(
+        a.out
+            .iter()
+            .chain(&a.partial_out)
+            .chain(&a.semantic_index)
+            .map(|p| p.as_path()),
+    )?;
     let views = match &a.views {
         Some(v) => v.len(),
         None => Cameras::read(&a.cameras)?.len(),
@@ -210,12 +225,14 @@ fn run_command(a: RunArgs, show: bool) -> Result<Value, BoxError> {
         partial_out: a.partial_out,
         views: a.views,
         precision: a.precision.precision(),
+        semantic_index: a.semantic_index,
     };
     let params = Params {
         k: usize::from(a.k),
         orphans: a.orphans,
         no_proposals: a.no_proposals,
         registration: a.registration,
+        min_share: a.min_share,
     };
     let bar = view_bar(show, views as u64);
     let run = job::run(&job, &params, &mut |r| {

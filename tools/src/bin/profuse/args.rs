@@ -57,6 +57,13 @@ pub enum Command {
         /// other masks, matches, cameras, Gaussians or warp_graph parameters are refused.
         #[arg(long, value_name = "FILE", num_args = 1..)]
         warp_partials: Vec<PathBuf>,
+        /// Per-Gaussian semantics the query and vertex-transfer stages read (config key
+        /// query.semantics): `pq` (PQ codes of every Gaussian, default), `index` (fuse
+        /// also writes out/semantic_index.safetensors: each Gaussian's dominant proposal,
+        /// 2 bytes, plus the proposal descriptor table; a prompt scores the P proposals)
+        /// or `both` (the index, with PQ codes for Gaussians without a dominant proposal).
+        #[arg(long, value_enum)]
+        semantics: Option<profuse_query::Semantics>,
         #[command(flatten)]
         common: Common,
     },

@@ -30,8 +30,12 @@ fn main() -> ExitCode {
             until,
             fuse_partials,
             warp_partials,
-            common,
+            semantics,
+            mut common,
         } => run(|| {
+            if let Some(s) = semantics {
+                common.set.push(format!("query.semantics=\"{}\"", s.name()));
+            }
             let opts = RunOptions {
                 proposals,
                 until,

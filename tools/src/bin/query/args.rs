@@ -58,12 +58,19 @@ pub(crate) enum Command {
 #[derive(Debug, Args)]
 pub(crate) struct DescriptorArgs {
     /// Per-Gaussian descriptors: a profuse.features file (exact scores).
-    #[arg(long, conflicts_with = "pq", required_unless_present = "pq")]
+    #[arg(long, conflicts_with_all = ["pq", "semantic_index"], required_unless_present_any = ["pq", "semantic_index"])]
     pub(crate) features: Option<PathBuf>,
     /// Per-Gaussian descriptors: a profuse.pq file (ADC scores = cosines with the decoded
-    /// descriptors).
+    /// descriptors). With --semantic-index: the codes of the Gaussians without a dominant
+    /// proposal.
     #[arg(long)]
     pub(crate) pq: Option<PathBuf>,
+    /// Compact semantics: a profuse.semantic_index file (fuse --semantic-index). A prompt
+    /// is scored on its P proposal descriptors and each Gaussian takes its dominant
+    /// proposal's score; with --pq, Gaussians without a dominant proposal are scored by
+    /// their PQ code instead.
+    #[arg(long)]
+    pub(crate) semantic_index: Option<PathBuf>,
     /// Prompt embeddings (profuse.prompts), in the descriptors' embedding space. Required
     /// for text prompts; with --click optional: it then only supplies the canonical
     /// negatives (object, things, stuff, texture) for `--score relevancy`.
@@ -79,10 +86,16 @@ impl DescriptorArgs {
     }
 
     pub(crate) fn source(&self) -> Result<DescriptorPath, BoxError> {
-        match (&self.features, &self.pq) {
-            (Some(f), None) => Ok(DescriptorPath::Features(f.clone())),
-            (None, Some(p)) => Ok(DescriptorPath::Pq(p.clone())),
-            _ => Err("give exactly one of --features and --pq".into()),
+        match (&self.features, &self.pq, &self.semantic_index) {
+            (Some(f), None, None) => Ok(DescriptorPath::Features(f.clone())),
+            (None, Some(p), None) => Ok(DescriptorPath::Pq(p.clone())),
+            (None, pq, Some(index)) => Ok(DescriptorPath::Indexed {
+                index: index.clone(),
+                fallback: pq.clone(),
+            }),
+            _ => {
+                Err("give one of --features, --pq and --semantic-index (with optional --pq)".into())
+            }
         }
     }
 }

@@ -1,0 +1,132 @@
+//! `query bench --semantics index|both|pq` (issue 24): one text query, LERF relevancy
+//! against the canonical negatives with the default threshold and the selection
+//! included, over N Gaussians, through a semantic index and through PQ codes in the same
+//! run. Storage is counted per Gaussian as the files hold it: PQ = M code bytes + 4 (norm)
+//! + 1 (valid); index = 2 (U16 index) + 1 (share), plus the [P, D] F16 table once.
+
+use profuse_formats::label_space::CANONICAL_NEGATIVES;
+use profuse_formats::rng::SplitMix64;
+use profuse_formats::{f16, Floats, Prompts, SemanticIndex};
+use profuse_query::{
+    score_prompts, select, Descriptors, IndexQuery, Indexed, Rule, ScoreKind, Semantics,
+    DEFAULT_RELEVANCY_THRESHOLD,
+};
+use serde_json::{json, Value};
+
+use crate::common;
+use crate::query::{fastest, random_pq, Params, SplitMix};
+use crate::BoxError;
+
+/// Runs the comparison; `semantics` picks the figures reported at the top level.
+pub fn run(a: &Params, semantics: Semantics) -> Result<Value, BoxError> {
+    if a.dim == 0 || a.m == 0 || !a.dim.is_multiple_of(a.m) || a.proposals == 0 {
+        return Err(format!(
+            "--dim {} must be a positive multiple of --m {}, and --proposals >= 1",
+            a.dim, a.m
+        )
+        .into());
+    }
+    let mut rng = SplitMix(SplitMix64::new(0x51ab_1e24));
+    let prompts = random_prompts(&mut rng, a.dim);
+    let pq = random_pq(&mut rng, a.gaussians, a.dim, a.m)?;
+    let index = random_index(&mut rng, a.gaussians, a.proposals, a.dim);
+    let rule = Rule::Threshold(DEFAULT_RELEVANCY_THRESHOLD);
+
+    let pq_s = fastest(a.repeat, || {
+        let scores = score_prompts(Descriptors::Pq(&pq), &prompts, &[0], ScoreKind::Relevancy)?;
+        select(&scores[0], rule)
+    })?;
+    let pq_selected = {
+        let scores = score_prompts(Descriptors::Pq(&pq), &prompts, &[0], ScoreKind::Relevancy)?;
+        select(&scores[0], rule)?.len()
+    };
+    let indexed = Indexed {
+        index: &index,
+        fallback: (semantics == Semantics::Both).then_some(&pq),
+    };
+    let query =
+        |x: &Indexed<'_>| IndexQuery::new(x, &prompts, 0, ScoreKind::Relevancy)?.select(x, rule);
+    let index_s = fastest(a.repeat, || query(&indexed))?;
+    let index_selected = query(&indexed)?.len();
+    let flagged = (0..a.gaussians).filter(|&g| !index.is_dominant(g)).count();
+
+    let per_gaussian = |bytes: usize| bytes as f64 / a.gaussians.max(1) as f64;
+    let pq_bytes = per_gaussian(pq.codes.len() + 4 * pq.norms.len() + pq.valid.len());
+    let index_bytes =
+        per_gaussian(index.index.dtype().size() * index.index.len() + index.share.len());
+    let table_bytes = 2 * index.descriptors.len();
+    let pq_entry = json!({
+        "query_us": pq_s * 1e6,
+        "bytes_per_gaussian": pq_bytes,
+        "selected": pq_selected,
+    });
+    let index_entry = json!({
+        "query_us": index_s * 1e6,
+        "bytes_per_gaussian": index_bytes,
+        // Index alone reads the 2-byte index; with a fallback the share too.
+        "bytes_read_per_gaussian": if semantics == Semantics::Both { 3.0 } else { 2.0 },
+        "table_bytes": table_bytes,
+        "selected": index_selected,
+        "flagged": flagged,
+    });
+    let top = if semantics == Semantics::Pq {
+        &pq_entry
+    } else {
+        &index_entry
+    };
+    Ok(json!({
+        "semantics": semantics.name(),
+        "query_us": top["query_us"],
+        "bytes_per_gaussian": top["bytes_per_gaussian"],
+        "index": index_entry,
+        "pq": pq_entry,
+        "gaussians": a.gaussians,
+        "proposals": a.proposals,
+        "dim": a.dim,
+        "m": a.m,
+        "score": "relevancy",
+        "threshold": DEFAULT_RELEVANCY_THRESHOLD,
+        "threads": profuse_pq::rayon::current_num_threads(),
+        "repeat": a.repeat,
+        "peak_rss_mb": common::peak_rss_mb(),
+    }))
+}
+
+/// One query prompt plus the four canonical negatives, random unit-free embeddings.
+fn random_prompts(rng: &mut SplitMix, d: usize) -> Prompts {
+    let mut names = vec!["query".to_string()];
+    names.extend(CANONICAL_NEGATIVES.map(String::from));
+    let embeddings: Vec<f32> = (0..names.len() * d).map(|_| rng.normal()).collect();
+    Prompts {
+        names,
+        dim: d,
+        embeddings: embeddings.into(),
+        ..Default::default()
+    }
+}
+
+/// N Gaussians spread over P random F16 unit rows; shares uniform in [1/255, 1] with the
+/// default `min_share` (about half the Gaussians dominant).
+fn random_index(rng: &mut SplitMix, n: usize, p: usize, d: usize) -> SemanticIndex {
+    let mut table = Vec::with_capacity(p * d);
+    let mut row = vec![0f32; d];
+    for _ in 0..p {
+        row.iter_mut().for_each(|v| *v = rng.normal());
+        let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+        table.extend(row.iter().map(|v| f16::from_f32(v / norm)));
+    }
+    let ids: Vec<Option<u32>> = (0..n)
+        .map(|_| Some((rng.next() % p as u64) as u32))
+        .collect();
+    SemanticIndex {
+        descriptors: Floats::F16(table.into()),
+        dim: d,
+        index: SemanticIndex::index_of(p, &ids),
+        share: (0..n)
+            .map(|_| 1 + (rng.next() % 255) as u8)
+            .collect::<Vec<u8>>()
+            .into(),
+        min_share: profuse_formats::quantise_share(profuse_fuse::DEFAULT_MIN_SHARE),
+        extra: Default::default(),
+    }
+}
