@@ -6,6 +6,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 // One module per stage tool; each uses the helpers defined in this file via `super::`.
+#[path = "e2e/fox_semantic.rs"]
+mod fox_semantic;
 #[path = "e2e/fuse.rs"]
 mod fuse;
 #[path = "e2e/gs_init.rs"]
@@ -29,6 +31,14 @@ mod warp_graph;
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The directory of the built tool binaries (what the shell examples take as PROFUSE_BIN_DIR).
+fn bin_dir() -> PathBuf {
+    Path::new(env!("CARGO_BIN_EXE_profuse"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
 }
 
 fn profuse(args: &[&str]) -> Output {

@@ -61,13 +61,6 @@ fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
     out
 }
 
-fn bin_dir() -> PathBuf {
-    Path::new(env!("CARGO_BIN_EXE_profuse"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
-
 #[test]
 fn shell_composition_of_the_tools_equals_profuse_run_byte_for_byte() {
     let dir = tempfile::tempdir().unwrap();
@@ -76,7 +69,7 @@ fn shell_composition_of_the_tools_equals_profuse_run_byte_for_byte() {
     let out = Command::new("bash")
         .arg(root().join("tools/pipeline.sh"))
         .arg(&scene)
-        .env("PROFUSE_BIN_DIR", bin_dir())
+        .env("PROFUSE_BIN_DIR", super::bin_dir())
         .env("PQ_M", "16")
         .output()
         .unwrap();
@@ -359,7 +352,7 @@ fn ray_driver_is_byte_identical_to_profuse_run() {
     }
     let out = Command::new("python3")
         .arg(root().join("python/profuse_ray/test_cluster.py"))
-        .env("PROFUSE_BIN_DIR", bin_dir())
+        .env("PROFUSE_BIN_DIR", super::bin_dir())
         .current_dir(root())
         .output()
         .unwrap();
