@@ -139,6 +139,121 @@ pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
 }
 
+/// [`dot`] of `a` with each vector of `b`, into `out` (`out.len() == b.len()`, every
+/// vector at least as long as `a`). Each result has exactly [`dot`]'s bits: the same
+/// eight partial sums in the same order, IEEE products and sums with no fused
+/// multiply-add. The vectors go up to six at a time through independent accumulators, which
+/// hides the add latency that bounds a single [`dot`], and with AVX (checked at run
+/// time) each group of eight partial sums is one register: scoring a row against
+/// several prompts costs little more than one product.
+pub fn dots(a: &[f32], b: &[&[f32]], out: &mut [f32]) {
+    assert_eq!(out.len(), b.len(), "one output per vector");
+    let (mut rest_b, mut rest_out) = (b, out);
+    while !rest_b.is_empty() {
+        let k = rest_b.len().min(6);
+        let (group, tail) = rest_b.split_at(k);
+        let (o, o_tail) = std::mem::take(&mut rest_out).split_at_mut(k);
+        let g = |j: usize| group[j];
+        match k {
+            1 => finish(a, lanes::<1>(a, [g(0)]), group, o),
+            2 => finish(a, lanes::<2>(a, [g(0), g(1)]), group, o),
+            3 => finish(a, lanes::<3>(a, [g(0), g(1), g(2)]), group, o),
+            4 => finish(a, lanes::<4>(a, [g(0), g(1), g(2), g(3)]), group, o),
+            5 => finish(a, lanes::<5>(a, [g(0), g(1), g(2), g(3), g(4)]), group, o),
+            _ => finish(
+                a,
+                lanes::<6>(a, [g(0), g(1), g(2), g(3), g(4), g(5)]),
+                group,
+                o,
+            ),
+        }
+        (rest_b, rest_out) = (tail, o_tail);
+    }
+}
+
+/// [`dot`]'s combination of its eight partial sums and the tail past the last group.
+fn finish<const K: usize>(a: &[f32], sums: [[f32; 8]; K], b: &[&[f32]], out: &mut [f32]) {
+    let n = a.len();
+    let whole = n - n % 8;
+    for ((o, acc), v) in out.iter_mut().zip(&sums).zip(b) {
+        let mut tail = 0.0f32;
+        for (x, y) in a[whole..].iter().zip(&v[whole..n]) {
+            tail += x * y;
+        }
+        *o = ((acc[0] + acc[4]) + (acc[1] + acc[5]))
+            + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
+            + tail;
+    }
+}
+
+/// The eight partial sums of [`dot`] for each of `K` vectors (whole groups of eight
+/// elements only; the caller adds the tail).
+fn lanes<const K: usize>(a: &[f32], b: [&[f32]; K]) -> [[f32; 8]; K] {
+    let n = a.len();
+    let b = b.map(|v| &v[..n]);
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        return avx::lanes(a, b);
+    }
+    portable_lanes(a, b)
+}
+
+fn portable_lanes<const K: usize>(a: &[f32], b: [&[f32]; K]) -> [[f32; 8]; K] {
+    use wide::f32x8;
+    // Explicit 8-lane vectors (lane l sums the products of the elements l mod 8, as
+    // `dot`'s acc[l]); the compiler's own vectoriser would interleave the vectors instead.
+    let (xs, _) = a.as_chunks::<8>();
+    let ys = b.map(|v| v.as_chunks::<8>().0);
+    let mut acc = [f32x8::ZERO; K];
+    for (i, x) in xs.iter().enumerate() {
+        let x = f32x8::from(*x);
+        for (acc, y) in acc.iter_mut().zip(&ys) {
+            *acc += x * f32x8::from(y[i]);
+        }
+    }
+    acc.map(|v| v.to_array())
+}
+
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod avx {
+    //! [`super::portable_lanes`] with 256-bit registers: `_mm256_mul_ps` then
+    //! `_mm256_add_ps` per lane, the same IEEE operations in the same order.
+
+    use std::arch::x86_64::*;
+
+    pub(super) fn lanes<const K: usize>(a: &[f32], b: [&[f32]; K]) -> [[f32; 8]; K] {
+        assert!(std::arch::is_x86_feature_detected!("avx"));
+        assert!(b.iter().all(|v| v.len() == a.len()));
+        // SAFETY: AVX is present (checked above) and every vector has `a.len()` elements.
+        unsafe { lanes_avx(a, b) }
+    }
+
+    /// # Safety
+    /// The CPU has AVX, and every vector of `b` has `a.len()` elements.
+    #[target_feature(enable = "avx")]
+    unsafe fn lanes_avx<const K: usize>(a: &[f32], b: [&[f32]; K]) -> [[f32; 8]; K] {
+        let whole = a.len() - a.len() % 8;
+        let mut acc = [_mm256_setzero_ps(); K];
+        let mut i = 0;
+        while i < whole {
+            // SAFETY: i + 8 <= whole <= len of `a` and of every vector of `b`.
+            let x = unsafe { _mm256_loadu_ps(a.as_ptr().add(i)) };
+            for (acc, v) in acc.iter_mut().zip(&b) {
+                let y = unsafe { _mm256_loadu_ps(v.as_ptr().add(i)) };
+                *acc = _mm256_add_ps(*acc, _mm256_mul_ps(x, y));
+            }
+            i += 8;
+        }
+        let mut out = [[0.0f32; 8]; K];
+        for (o, acc) in out.iter_mut().zip(acc) {
+            // SAFETY: `o` holds eight f32.
+            unsafe { _mm256_storeu_ps(o.as_mut_ptr(), acc) };
+        }
+        out
+    }
+}
+
 /// Cosine of two vectors in f64 (0 when either is zero).
 pub fn cosine_f64(a: &[f32], b: &[f32]) -> f64 {
     let (mut ab, mut aa, mut bb) = (0f64, 0f64, 0f64);
@@ -157,7 +272,7 @@ pub fn cosine_f64(a: &[f32], b: &[f32]) -> f64 {
 
 #[cfg(test)]
 mod tests {
-    use super::dot;
+    use super::{dot, dots, portable_lanes};
 
     #[test]
     fn dot_matches_a_plain_sum_for_every_length() {
@@ -170,6 +285,30 @@ mod tests {
                 .map(|(x, y)| f64::from(*x) * f64::from(*y))
                 .sum();
             assert!((f64::from(dot(&a, &b)) - want).abs() < 1e-5, "n = {n}");
+        }
+    }
+
+    #[test]
+    fn dots_have_the_bits_of_dot_for_every_length_and_count() {
+        for n in 0..70 {
+            let v = |k: f32| -> Vec<f32> { (0..n).map(|i| (i as f32 * k).sin() * 3.0).collect() };
+            let a = v(0.37);
+            let b: Vec<Vec<f32>> = (0..7).map(|j| v(0.91 + 0.77 * j as f32)).collect();
+            for count in 0..=b.len() {
+                let refs: Vec<&[f32]> = b[..count].iter().map(Vec::as_slice).collect();
+                let mut got = vec![f32::NAN; count];
+                dots(&a, &refs, &mut got);
+                for (g, b) in got.iter().zip(&refs) {
+                    assert_eq!(
+                        g.to_bits(),
+                        dot(&a, b).to_bits(),
+                        "n = {n}, count = {count}"
+                    );
+                }
+            }
+            // The portable lanes equal the run-time chosen ones.
+            let four = [b[0].as_slice(), &b[1], &b[2], &b[3]];
+            assert_eq!(portable_lanes(&a, four), super::lanes(&a, four), "n = {n}");
         }
     }
 }

@@ -128,6 +128,7 @@ mod error;
 mod export;
 mod output;
 mod params;
+mod pick;
 mod pipeline;
 mod score;
 mod select;
@@ -151,4 +152,6 @@ pub use score::{
     CANONICAL_NEGATIVES, INVALID_SCORE, RELEVANCY_TEMPERATURE,
 };
 pub use select::{select, ActiveSet, Rule};
-pub use semantic::{select_indexed, IndexQuery, Indexed, Semantics};
+pub use semantic::{
+    select_indexed, select_indexed_into, IndexQuery, IndexTable, Indexed, SelectBuffers, Semantics,
+};

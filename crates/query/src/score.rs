@@ -130,23 +130,28 @@ pub(crate) fn exact_cosines(f: &Features, units: &[Vec<f32>]) -> Vec<Vec<f32>> {
     }
     // Interleaved [N, Q] so that each descriptor row is read once for every vector.
     let mut table = vec![INVALID_SCORE; n * q];
+    // Small inputs (a semantic index's proposal table) still use every thread; the
+    // partition does not change a single bit.
+    let rows_per_task = (n / (4 * rayon::current_num_threads())).clamp(16, ROWS_PER_TASK);
     table
-        .par_chunks_mut(ROWS_PER_TASK * q)
+        .par_chunks_mut(rows_per_task * q)
         .enumerate()
         .for_each(|(task, out)| {
             let mut row = vec![0.0f32; d];
+            let mut dots = vec![0.0f32; q + 1];
             for (r, scores) in out.chunks_exact_mut(q).enumerate() {
-                let g = task * ROWS_PER_TASK + r;
+                let g = task * rows_per_task + r;
                 if f.valid[g] != 1 {
                     continue;
                 }
                 read_row(&f.features, g * d, &mut row);
-                let norm = dot(&row, &row).sqrt();
+                row_dots(&row, units, &mut dots);
+                let norm = dots[0].sqrt();
                 if !(norm > 0.0 && norm.is_finite()) {
                     continue;
                 }
-                for (s, u) in scores.iter_mut().zip(units) {
-                    *s = dot(u, &row) / norm;
+                for (s, c) in scores.iter_mut().zip(&dots[1..]) {
+                    *s = c / norm;
                 }
             }
         });
@@ -155,9 +160,18 @@ pub(crate) fn exact_cosines(f: &Features, units: &[Vec<f32>]) -> Vec<Vec<f32>> {
         .collect()
 }
 
+/// `out[0] = dot(row, row)`, `out[1 + j] = dot(units[j], row)`, in one
+/// [`profuse_pq::dots`] call (the same bits as [`dot`]; the product commutes exactly).
+pub(crate) fn row_dots(row: &[f32], units: &[Vec<f32>], out: &mut [f32]) {
+    let vectors: Vec<&[f32]> = std::iter::once(row)
+        .chain(units.iter().map(Vec::as_slice))
+        .collect();
+    profuse_pq::dots(row, &vectors, out);
+}
+
 /// One descriptor row as f32; F16 rows go through `half`'s slice conversion, which uses
 /// the CPU's F16C instructions when present (4x faster than element-wise conversion).
-fn read_row(features: &Floats, start: usize, row: &mut [f32]) {
+pub(crate) fn read_row(features: &Floats, start: usize, row: &mut [f32]) {
     match features {
         Floats::F16(b) => {
             use half::slice::HalfFloatSliceExt;
@@ -240,12 +254,27 @@ pub fn score_prompts(
     which: &[usize],
     kind: ScoreKind,
 ) -> Result<Vec<Vec<f32>>> {
-    if prompts.dim != descriptors.dim() {
+    score_prompts_with(descriptors.dim(), prompts, which, kind, |units| {
+        descriptors.cosines(units)
+    })
+}
+
+/// [`score_prompts`] over descriptors of dimension `dim` whose cosines with unit
+/// vectors `cosines` computes (one `Vec` per unit vector, [`INVALID_SCORE`] where there
+/// is no descriptor).
+pub(crate) fn score_prompts_with(
+    dim: usize,
+    prompts: &Prompts,
+    which: &[usize],
+    kind: ScoreKind,
+    cosines: impl FnOnce(&[Vec<f32>]) -> Result<Vec<Vec<f32>>>,
+) -> Result<Vec<Vec<f32>>> {
+    if prompts.dim != dim {
         return Err(QueryError::DimMismatch {
             prompts: "prompts".into(),
             prompt_dim: prompts.dim,
             descriptors: "descriptors".into(),
-            descriptor_dim: descriptors.dim(),
+            descriptor_dim: dim,
         });
     }
     // Every prompt row needed (queries, then negatives), each scored once.
@@ -280,7 +309,7 @@ pub fn score_prompts(
             })
         })
         .collect::<Result<Vec<_>>>()?;
-    let cosines = descriptors.cosines(&units)?;
+    let cosines = cosines(&units)?;
     let of_row = |r: usize| -> &[f32] {
         // `rows` is sorted and holds every index looked up here.
         let at = rows.binary_search(&r).unwrap_or(0);

@@ -7,12 +7,13 @@
 //! so scoring a row and handing it to every Gaussian of the row gives the same bits as
 //! scoring each Gaussian with that row as its descriptor.
 
-use profuse_formats::{Features, Labels, Pq, SemanticIndex};
+use profuse_formats::{Labels, Pq, SemanticIndex};
 use profuse_pq::LookupTable;
 use rayon::prelude::*;
 
 use crate::error::{QueryError, Result};
-use crate::score::{exact_cosines, INVALID_SCORE};
+use crate::pick::ScoreTable;
+use crate::score::INVALID_SCORE;
 use crate::select::{select, ActiveSet, Rule};
 
 /// Gaussians per parallel task of the gathers.
@@ -52,25 +53,9 @@ impl Indexed<'_> {
         }
     }
 
-    /// The table as a features record (its rows are the "Gaussians"): zero rows invalid.
-    fn table(&self) -> Features {
-        let (d, p) = (self.index.dim, self.index.num_proposals());
-        let t = &self.index.descriptors;
-        let valid: Vec<u8> = (0..p)
-            .map(|r| u8::from((0..d).any(|j| t.get(r * d + j) != 0.0)))
-            .collect();
-        Features {
-            features: t.clone(),
-            dim: d,
-            valid: valid.into(),
-            weight_sum: None,
-            extra: Default::default(),
-        }
-    }
-
     /// Per unit vector, the cosine of every table row ([`INVALID_SCORE`] for a zero row).
     pub fn row_cosines(&self, units: &[Vec<f32>]) -> Vec<Vec<f32>> {
-        exact_cosines(&self.table(), units)
+        IndexTable::new(self.index).cosines(units)
     }
 
     /// Per unit vector, the cosine of every Gaussian: its row's, or its PQ code's where it
@@ -124,6 +109,86 @@ impl Indexed<'_> {
     }
 }
 
+/// Rows of the table scored per parallel task.
+const TABLE_ROWS_PER_TASK: usize = 128;
+
+/// A semantic index's descriptor table prepared for scoring: its rows as f32 and their
+/// norms, computed once per index (when it is loaded), so that a query costs a few
+/// products per row. Scores have exactly the bits of the features path
+/// ([`crate::score_prompts`] over `profuse.features` rows equal to the table's): the same
+/// conversion, the same [`crate::dot`] for the norm and the cosines.
+#[derive(Debug, Clone)]
+pub struct IndexTable {
+    dim: usize,
+    rows: Vec<f32>,
+    norms: Vec<f32>,
+}
+
+impl IndexTable {
+    /// Converts the table (F16 rows through F16C where the CPU has it) and takes the norms.
+    pub fn new(index: &SemanticIndex) -> IndexTable {
+        let (d, p) = (index.dim, index.num_proposals());
+        let mut rows = vec![0f32; p * d];
+        let mut norms = vec![0f32; p];
+        if d > 0 {
+            rows.par_chunks_mut(d)
+                .zip(norms.par_iter_mut())
+                .enumerate()
+                .with_min_len(TABLE_ROWS_PER_TASK)
+                .for_each(|(r, (row, norm))| {
+                    crate::score::read_row(&index.descriptors, r * d, row);
+                    *norm = crate::dot(row, row).sqrt();
+                });
+        }
+        IndexTable {
+            dim: d,
+            rows,
+            norms,
+        }
+    }
+
+    /// Rows P.
+    pub fn len(&self) -> usize {
+        self.norms.len()
+    }
+
+    /// Whether the table has no rows.
+    pub fn is_empty(&self) -> bool {
+        self.norms.is_empty()
+    }
+
+    /// Per unit vector, the cosine of every row; [`INVALID_SCORE`] for a row without a
+    /// direction (zero or not finite).
+    pub fn cosines(&self, units: &[Vec<f32>]) -> Vec<Vec<f32>> {
+        let (p, q, d) = (self.len(), units.len(), self.dim);
+        if q == 0 {
+            return Vec::new();
+        }
+        let mut interleaved = vec![INVALID_SCORE; p * q];
+        interleaved
+            .par_chunks_mut(q)
+            .enumerate()
+            .with_min_len(TABLE_ROWS_PER_TASK)
+            .for_each_init(
+                || units.iter().map(Vec::as_slice).collect::<Vec<&[f32]>>(),
+                |vectors, (r, out)| {
+                    let norm = self.norms[r];
+                    if !(norm > 0.0 && norm.is_finite()) {
+                        return;
+                    }
+                    let row = &self.rows[r * d..(r + 1) * d];
+                    profuse_pq::dots(row, vectors, out);
+                    for c in out.iter_mut() {
+                        *c /= norm;
+                    }
+                },
+            );
+        (0..q)
+            .map(|j| interleaved.iter().skip(j).step_by(q).copied().collect())
+            .collect()
+    }
+}
+
 /// The cosine of a PQ code as the pq path computes it ([`INVALID_SCORE`] when invalid).
 fn pq_cosine(pq: &Pq, lut: &LookupTable, g: usize) -> f32 {
     let norm = pq.norms[g];
@@ -144,15 +209,55 @@ pub fn select_indexed(
     fallback_score: &(dyn Fn(usize) -> f32 + Sync),
     rule: Rule,
 ) -> Result<ActiveSet> {
+    let mut out = ActiveSet::default();
+    select_indexed_into(
+        indexed,
+        row_scores,
+        fallback_score,
+        rule,
+        &mut SelectBuffers::default(),
+        &mut out,
+    )?;
+    Ok(out)
+}
+
+/// Working memory of [`select_indexed_into`], kept between queries by a caller that
+/// answers many (a server, a viewer, a benchmark): a selection then reuses memory
+/// whose pages are already mapped instead of mapping (and unmapping) megabytes per query.
+#[derive(Debug, Default)]
+pub struct SelectBuffers {
+    bits: Vec<u64>,
+}
+
+/// [`select_indexed`] into `out`, reusing its vectors' memory and `buffers`.
+pub fn select_indexed_into(
+    indexed: &Indexed<'_>,
+    row_scores: &[f32],
+    fallback_score: &(dyn Fn(usize) -> f32 + Sync),
+    rule: Rule,
+    buffers: &mut SelectBuffers,
+    out: &mut ActiveSet,
+) -> Result<()> {
     let Rule::Threshold(t) = rule else {
         let n = indexed.len();
         let scores: Vec<f32> = (0..n)
             .into_par_iter()
             .map(|g| score_of(indexed, row_scores, fallback_score, g))
             .collect();
-        return select(&scores, rule);
+        *out = select(&scores, rule)?;
+        return Ok(());
     };
     rule.validate()?;
+    out.threshold = t;
+    if indexed.fallback.is_none() {
+        let table = ScoreTable::new(row_scores, t);
+        let (bits, ids, scores) = (&mut buffers.bits, &mut out.ids, &mut out.scores);
+        match &indexed.index.index {
+            Labels::U16(b) => crate::pick::pick_into(b, &table, bits, ids, scores),
+            Labels::U32(b) => crate::pick::pick_into(b, &table, bits, ids, scores),
+        }
+        return Ok(());
+    }
     let passes: Vec<bool> = row_scores
         .iter()
         .map(|s| s.is_finite() && *s >= t)
@@ -162,18 +267,14 @@ pub fn select_indexed(
         rows: row_scores,
         share: &indexed.index.share,
         min_share: indexed.index.min_share,
-        fallback: indexed.fallback.is_some().then_some(fallback_score),
+        fallback: Some(fallback_score),
         threshold: t,
     };
-    let (ids, scores) = match &indexed.index.index {
+    (out.ids, out.scores) = match &indexed.index.index {
         Labels::U16(b) => pick.run(b, u32::from(u16::MAX)),
         Labels::U32(b) => pick.run(b, u32::MAX),
     };
-    Ok(ActiveSet {
-        ids,
-        scores,
-        threshold: t,
-    })
+    Ok(())
 }
 
 /// What [`select_indexed`] needs per Gaussian, borrowed as plain slices so that the pass
@@ -262,13 +363,28 @@ impl IndexQuery {
         query: usize,
         kind: crate::ScoreKind,
     ) -> Result<IndexQuery> {
-        let table = indexed.table();
-        let mut rows = crate::score_prompts(
-            crate::Descriptors::Features(&table),
+        IndexQuery::with_table(
+            indexed,
+            &IndexTable::new(indexed.index),
             prompts,
-            &[query],
+            query,
             kind,
-        )?;
+        )
+    }
+
+    /// [`IndexQuery::new`] with the index's table prepared once ([`IndexTable::new`]),
+    /// for many queries over one index.
+    pub fn with_table(
+        indexed: &Indexed<'_>,
+        table: &IndexTable,
+        prompts: &profuse_formats::Prompts,
+        query: usize,
+        kind: crate::ScoreKind,
+    ) -> Result<IndexQuery> {
+        let mut rows =
+            crate::score::score_prompts_with(table.dim, prompts, &[query], kind, |units| {
+                Ok(table.cosines(units))
+            })?;
         let luts = match indexed.fallback {
             None => Vec::new(),
             Some(_) => {
@@ -321,11 +437,25 @@ impl IndexQuery {
 
     /// The prompt's active set under `rule` ([`select_indexed`]).
     pub fn select(&self, indexed: &Indexed<'_>, rule: Rule) -> Result<ActiveSet> {
+        let mut out = ActiveSet::default();
+        self.select_into(indexed, rule, &mut SelectBuffers::default(), &mut out)?;
+        Ok(out)
+    }
+
+    /// [`IndexQuery::select`] into `out`, reusing its memory and `buffers`
+    /// ([`select_indexed_into`]).
+    pub fn select_into(
+        &self,
+        indexed: &Indexed<'_>,
+        rule: Rule,
+        buffers: &mut SelectBuffers,
+        out: &mut ActiveSet,
+    ) -> Result<()> {
         let fallback = |g: usize| match indexed.fallback {
             Some(pq) => self.fallback_score(pq, g),
             None => INVALID_SCORE,
         };
-        select_indexed(indexed, &self.rows, &fallback, rule)
+        select_indexed_into(indexed, &self.rows, &fallback, rule, buffers, out)
     }
 }
 
