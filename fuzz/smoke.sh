@@ -10,12 +10,16 @@
 # fuzz/artifacts/<target>/).
 #
 #   fuzz/smoke.sh                       # CI smoke run: 11 targets x 15 s
-#   FUZZ_SECONDS=3600 fuzz/smoke.sh     # the long run (1 h per target)
+#   FUZZ_SECONDS=3600 FUZZ_RUNS=10000000 fuzz/smoke.sh
+#                                       # the long run: 10 M executions or 1 h per target
 #   FUZZ_TARGETS="npy ply" fuzz/smoke.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 SECONDS_PER_TARGET=${FUZZ_SECONDS:-15}
+# 0 = no cap on executions (libFuzzer's -runs=-1); the time box alone ends the run.
+RUNS=${FUZZ_RUNS:-0}
+[ "$RUNS" -gt 0 ] || RUNS=-1
 TARGET_DIR=${FUZZ_TARGET_DIR:-target/fuzz}
 command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz --locked
 python3 fuzz/build_corpus.py >/dev/null
@@ -30,7 +34,7 @@ for t in $TARGETS; do
     (
         ulimit -v $((3 * 1024 * 1024))
         cargo fuzz run --sanitizer none --target-dir "$TARGET_DIR" "$t" "fuzz/corpus/$t" -- \
-            -max_total_time="$SECONDS_PER_TARGET" -timeout=10 -rss_limit_mb=2048 \
+            -max_total_time="$SECONDS_PER_TARGET" -runs="$RUNS" -timeout=10 -rss_limit_mb=2048 \
             -max_len=65536 -print_final_stats=1 -close_fd_mask=1
     ) >"$log" 2>&1
     rc=$?

@@ -289,6 +289,23 @@ class WriteThenReadTests(TempDir):
                     self.assertEqual(report["counts"], rec.counts())
                     self.assertEqual(report["metadata"], rec.metadata)
 
+    def test_semantic_index_past_65535_proposals_is_u32(self) -> None:
+        # SPEC.md 4.17: U32 iff P > 65535; proposal 65535 is then real, u32 max is none.
+        p = 65537
+        table = np.where(np.arange(p) % 2 == 0, 1.0, -1.0).astype(np.float16)[:, None]
+        path = self.dir / "si.safetensors"
+        index = np.array([65535, 0, 2**32 - 1, 65536, 7], np.uint32)
+        pf.write_semantic_index(
+            path, descriptors=table, index=index, share=[255, 128, 0, 200, 1], min_share=128
+        )
+        rec = pf.read_semantic_index(path)
+        self.assertEqual(rec.index.dtype, np.uint32)
+        np.testing.assert_array_equal(rec.index, index)
+        if RUST:
+            out = rust_inspect(path)
+            self.assertEqual(out.returncode, 0, out.stderr.decode())
+            self.assertEqual(json.loads(out.stdout)["counts"], rec.counts())
+
     def test_fixed_point_words_round_trip(self) -> None:
         values = [0, 1, 2**62, 2**64 - 1, 2**64, 2**128 - 1]
         words = pf.fixed_point_words(values)

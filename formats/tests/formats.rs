@@ -6,9 +6,10 @@ use std::path::{Path, PathBuf};
 
 use profuse_formats::samples::{self, Vector};
 use profuse_formats::{
-    f16, fixed_point, fixed_point_words, inspect, Cameras, Container, Features, FileKind, Floats,
-    FusePartial, Gaussians, Labels, Masks, Matches, Mesh, Pq, Prompts, Proposals, Selection,
-    SparseMatches, TopK, VertexLabels, ViewMaps, WarpCoords, WarpPartial, WARP_COUNTERS,
+    f16, fixed_point, fixed_point_words, inspect, quantise_share, Cameras, Container, Features,
+    FileKind, FileWriter, Floats, FusePartial, Gaussians, Labels, Masks, Matches, Mesh, Pq,
+    Prompts, Proposals, Selection, SemanticIndex, SparseMatches, TopK, VertexLabels, ViewMaps,
+    WarpCoords, WarpPartial, MAX_U16_PROPOSALS, WARP_COUNTERS,
 };
 use proptest::prelude::*;
 
@@ -208,6 +209,46 @@ fn warp_partial_round_trips_and_the_writer_validates() {
     let err = bad.write(dir.path().join("bad.safetensors")).unwrap_err();
     assert_eq!((err.code(), err.field()), ("shape", Some("edge_scores")));
     assert!(!dir.path().join("bad.safetensors").exists());
+}
+
+/// Past 65,535 proposals the index is U32 (SPEC.md §4.17): proposal 65,535 is then a
+/// real proposal, and only u32::MAX means "none". It round-trips, and a U16 index is
+/// refused for that many proposals with an error naming the tensor and the rule.
+#[test]
+fn a_semantic_index_over_more_than_65535_proposals_round_trips_as_u32() {
+    let p = MAX_U16_PROPOSALS + 2;
+    let table: Vec<f16> = (0..p)
+        .map(|r| f16::from_f32(if r % 2 == 0 { 1.0 } else { -1.0 }))
+        .collect();
+    let ids = [Some(65_535), Some(0), None, Some(65_536), Some(7)];
+    let si = SemanticIndex {
+        descriptors: Floats::F16(table.into()),
+        dim: 1,
+        index: SemanticIndex::index_of(p, &ids),
+        share: vec![255u8, 128, 0, 200, 1].into(),
+        min_share: quantise_share(0.5),
+        extra: Default::default(),
+    };
+    assert!(matches!(si.index, Labels::U32(_)));
+    round_trip(&si);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("si.safetensors");
+    si.write(&path).unwrap();
+    let back = SemanticIndex::read(&path).unwrap();
+    let got: Vec<Option<u32>> = (0..5).map(|g| back.proposal(g)).collect();
+    assert_eq!(got, ids);
+    let dominant: Vec<bool> = (0..5).map(|g| back.is_dominant(g)).collect();
+    assert_eq!(dominant, [true, true, false, true, false]);
+    // The same proposals stored as U16 (65,535 would read as "none") are refused.
+    let mut narrow = si.clone();
+    narrow.index = Labels::U16(vec![65_535u16, 0, 65_535, 1, 7].into());
+    let mut w = FileWriter::new(profuse_formats::Kind::SemanticIndex);
+    narrow.fill(&mut w);
+    let bytes = w.to_bytes().unwrap();
+    let c = Container::from_vec("narrow.safetensors", bytes).unwrap();
+    let err = SemanticIndex::from_checked_container(&c).unwrap_err();
+    assert_eq!((err.code(), err.field()), ("dtype", Some("index")), "{err}");
+    assert!(err.to_string().contains("U16 iff P <= 65535"), "{err}");
 }
 
 #[test]
