@@ -478,3 +478,57 @@ fn gs_refine_stage_runs_between_gs_init_and_warp_graph_when_configured() {
     assert!(plain.path().join("out/gaussians.safetensors").is_file());
     assert!(!plain.path().join("out/gaussians_init.safetensors").exists());
 }
+
+/// `query.semantics` index and both (issue 24): fuse writes the semantic index beside the
+/// features, query and vertex-transfer read it (both: with the PQ codes for the Gaussians
+/// without a dominant proposal), the scores meet the same floors as the PQ run, and
+/// switching between index and both reruns only the stages that read the semantics.
+#[test]
+fn index_and_both_semantics_run_end_to_end_and_meet_the_pq_floors() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let opts = RunOptions::default();
+    let with = |mode: &str| {
+        tiny_config()
+            .with_overrides(&[format!("query.semantics=\"{mode}\"")])
+            .unwrap()
+    };
+    let s = run(dir.path(), &with("index"), &opts, &|_| {}).unwrap();
+    assert!(s.stages.iter().all(|l| l.ran), "{:?}", ran(&s));
+    let paths = Paths::new(dir.path(), &s.out, false);
+    let index = profuse_formats::SemanticIndex::read(&paths.semantic_index).unwrap();
+    let gaussians = profuse_formats::Gaussians::read(&paths.gaussians).unwrap();
+    assert_eq!(index.num_gaussians(), gaussians.len());
+    let proposals = profuse_formats::Proposals::read(&paths.proposals).unwrap();
+    // The rows are the proposals, then one per orphan mask (SPEC.md §4.17, singleton
+    // orphans by default).
+    assert!(
+        index.num_proposals() > proposals.len(),
+        "{} rows",
+        index.num_proposals()
+    );
+    let dominant = (0..index.num_gaussians())
+        .filter(|&g| index.is_dominant(g))
+        .count();
+    assert!(dominant > index.num_gaussians() / 2, "{dominant} dominant");
+    let floors = |mode: &str| {
+        let m = evaluate(&Paths::new(dir.path(), &s.out, false)).unwrap();
+        let get = |k: &str| m[k].as_f64().unwrap();
+        assert!(get("lerf_miou") > 25.0, "{mode}: {m:?}");
+        assert!(get("scannet_miou19") > 12.0, "{mode}: {m:?}");
+    };
+    floors("index");
+
+    let s = run(dir.path(), &with("both"), &opts, &|_| {}).unwrap();
+    let r = ran(&s);
+    for (stage, expected) in [
+        ("gs-init", false),
+        ("warp-graph", false),
+        ("fuse", false),
+        ("query", true),
+        ("vertex-transfer", true),
+    ] {
+        assert!(r.contains(&(stage, expected)), "{stage}: {r:?}");
+    }
+    floors("both");
+}
