@@ -2481,8 +2481,9 @@ class SemanticIndex(_Record):
     descriptors: np.ndarray
     #: U16 (P <= 65535) or U32 [N]: dominant proposal, or the dtype's maximum (none).
     index: np.ndarray
-    #: U8 [N]: share in units of 1/255, 0 where index is none.
-    share: np.ndarray
+    #: U8 [N]: share in units of 1/255, 0 where index is none; ``None`` when the file
+    #: omits it (allowed only with ``min_share`` 0: the index alone, 2 bytes a Gaussian).
+    share: np.ndarray | None
     #: Metadata ``min_share`` (units of 1/255).
     min_share: int
     #: Descriptor dimension D.
@@ -2491,12 +2492,19 @@ class SemanticIndex(_Record):
     def dominant(self) -> np.ndarray:
         """Boolean [N]: a dominant proposal (index not none, share >= min_share)."""
         none = _LABEL_NONE["U16" if self.index.dtype == np.uint16 else "U32"]
-        return (self.index != none) & (self.share >= self.min_share)
+        return (self.index != none) & (self.shares() >= self.min_share)
+
+    def shares(self) -> np.ndarray:
+        """U8 [N]: the stored shares, or without them 255 where index is not none, else 0."""
+        if self.share is not None:
+            return self.share
+        none = _LABEL_NONE["U16" if self.index.dtype == np.uint16 else "U32"]
+        return np.where(self.index != none, 255, 0).astype(np.uint8)
 
     def counts(self) -> dict[str, int]:
         none = _LABEL_NONE["U16" if self.index.dtype == np.uint16 else "U32"]
         return {
-            "gaussians": int(self.share.shape[0]),
+            "gaussians": int(self.index.shape[0]),
             "proposals": int(self.descriptors.shape[0]),
             "feature_dim": self.dim,
             "indexed": int(np.count_nonzero(self.index != none)),
@@ -2516,7 +2524,11 @@ def _semantic_index(c: Container) -> SemanticIndex:
     want = _index_dtype(p)
     if index_dtype != want:
         raise _dtype_error(c.path, "index", index_dtype, f"{want} for P = {p} proposals (U16 iff P <= 65535)")
-    r.req("share", "U8", "N")
+    # Required unless min_share is 0, where it cannot change which Gaussians are dominant.
+    if min_share == 0:
+        r.opt("share", "U8", "N")
+    else:
+        r.req("share", "U8", "N")
     a = r.load()
     path = c.path
     if dim == 0:
@@ -2525,10 +2537,10 @@ def _semantic_index(c: Container) -> SemanticIndex:
     _check_finite(path, "descriptors", desc)
     _check_unit_rows(path, "descriptors", desc, desc_dtype, ~np.any(desc != 0, axis=1))
     none = _LABEL_NONE[index_dtype]
-    index, share = a["index"], a["share"]
+    index, share = a["index"], a.get("share")
     _check_ids(path, "index", index, p, none, "the table")
-    g = _first((index == none) & (share != 0))
-    if g is not None:
+    g = None if share is None else _first((index == none) & (share != 0))
+    if g is not None and share is not None:
         raise _invalid(path, "share", f"Gaussian {g} has no proposal but share {int(share[g])} (expected 0)")
     return SemanticIndex(
         path=path,
@@ -3165,15 +3177,17 @@ def write_semantic_index(
     """``profuse.semantic_index`` (SPEC.md 4.17): the proposal table ``descriptors``
     [P, D], per Gaussian its dominant proposal ``index`` [N] (stored U16 iff P <= 65535,
     the dtype's maximum = none) and ``share`` U8 [N] (units of 1/255, see
-    :func:`quantise_share`); ``min_share`` in the same units."""
+    :func:`quantise_share`; ``None`` to omit it, allowed only with ``min_share`` 0);
+    ``min_share`` in the same units."""
     p = _label(path)
     desc = _tensor(p, "descriptors", descriptors, ("F16", "F32"))
     num = desc.shape[0] if desc.ndim >= 1 else 0
     tensors = {
         "descriptors": desc,
         "index": _tensor(p, "index", index, (_index_dtype(num),)),
-        "share": _tensor(p, "share", share, ("U8",)),
     }
+    if share is not None:
+        tensors["share"] = _tensor(p, "share", share, ("U8",))
     fixed = {"min_share": _meta_int(p, "min_share", min_share)}
     _finish(path, "semantic_index", tensors, fixed, metadata, generator)
 

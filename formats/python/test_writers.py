@@ -306,6 +306,23 @@ class WriteThenReadTests(TempDir):
             self.assertEqual(out.returncode, 0, out.stderr.decode())
             self.assertEqual(json.loads(out.stdout)["counts"], rec.counts())
 
+    def test_semantic_index_without_share_needs_min_share_0(self) -> None:
+        path = self.dir / "si.safetensors"
+        kwargs = dict(descriptors=np.eye(3, 4), index=[2, 0, 65535, 1], share=None)
+        pf.write_semantic_index(path, min_share=0, **kwargs)
+        rec = pf.read_semantic_index(path)
+        self.assertIsNone(rec.share)
+        np.testing.assert_array_equal(rec.dominant(), [True, True, False, True])
+        np.testing.assert_array_equal(rec.shares(), [255, 255, 0, 255])
+        self.assertEqual(rec.counts()["gaussians"], 4)
+        if RUST:
+            out = rust_inspect(path)
+            self.assertEqual(out.returncode, 0, out.stderr.decode())
+            self.assertEqual(json.loads(out.stdout)["counts"], rec.counts())
+        with self.assertRaises(pf.FormatError) as ctx:
+            pf.write_semantic_index(path, min_share=1, **kwargs)
+        self.assertEqual((ctx.exception.code, ctx.exception.field), ("missing_tensor", "share"))
+
     def test_fixed_point_words_round_trip(self) -> None:
         values = [0, 1, 2**62, 2**64 - 1, 2**64, 2**128 - 1]
         words = pf.fixed_point_words(values)

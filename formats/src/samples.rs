@@ -289,7 +289,7 @@ pub fn semantic_index() -> SemanticIndex {
         descriptors: Floats::F32(table.into()),
         dim: 4,
         index: SemanticIndex::index_of(3, &[Some(0), Some(1), Some(0), None, Some(2)]),
-        share: vec![255, 200, 100, 0, 128].into(),
+        share: Some(vec![255, 200, 100, 0, 128].into()),
         min_share: 128,
         extra: BTreeMap::from([("generator".to_string(), "profuse-fuse".to_string())]),
     }
@@ -350,7 +350,11 @@ fn semantic_index_case() -> Case {
         ),
         (
             "invalid",
-            mutated(&si, |s| set(&mut s.share, 3, 9)),
+            mutated(&si, |s| {
+                if let Some(share) = &mut s.share {
+                    set(share, 3, 9)
+                }
+            }),
             "invalid",
             Some("share"),
         ),

@@ -44,8 +44,9 @@ pub struct SemanticIndex {
     /// for a Gaussian with no registration weight.
     pub index: Labels,
     /// `share` U8 [N]: the dominant proposal's share of the Gaussian's weight, in units of
-    /// 1/255; 0 where `index` is none.
-    pub share: Buffer<u8>,
+    /// 1/255; 0 where `index` is none. Optional when `min_share` is 0 (every Gaussian with
+    /// a proposal is then dominant, and the index alone is 2 bytes a Gaussian).
+    pub share: Option<Buffer<u8>>,
     /// Metadata `min_share` (units of 1/255): a Gaussian has a dominant proposal iff its
     /// index is not none and `share >= min_share`.
     pub min_share: u8,
@@ -56,7 +57,7 @@ pub struct SemanticIndex {
 impl SemanticIndex {
     /// Gaussians N.
     pub fn num_gaussians(&self) -> usize {
-        self.share.len()
+        self.index.len()
     }
 
     /// Proposals P (rows of the table).
@@ -72,7 +73,16 @@ impl SemanticIndex {
     /// Whether Gaussian `g` has a dominant proposal (share at least `min_share`); the
     /// others fall back to their PQ code where one exists.
     pub fn is_dominant(&self, g: usize) -> bool {
-        self.index.get(g).is_some() && self.share[g] >= self.min_share
+        self.index.get(g).is_some() && self.share_of(g) >= self.min_share
+    }
+
+    /// Gaussian `g`'s stored share (units of 1/255); without a `share` tensor (only
+    /// allowed with `min_share` 0) 255 for a Gaussian with a proposal, else 0.
+    pub fn share_of(&self, g: usize) -> u8 {
+        match &self.share {
+            Some(s) => s.get(g).copied().unwrap_or(0),
+            None => u8::from(self.index.get(g).is_some()) * 255,
+        }
     }
 
     /// Builds `index` in the dtype SPEC.md prescribes for `num_proposals`, from ids with
@@ -118,7 +128,12 @@ impl FileKind for SemanticIndex {
             descriptors,
             dim: r.dim("D"),
             index,
-            share: r.req("share", "N")?,
+            // Required unless min_share is 0, where it cannot change which Gaussians are
+            // dominant.
+            share: match min_share {
+                0 => r.opt("share", "N")?,
+                _ => Some(r.req("share", "N")?),
+            },
             min_share,
             extra: r.extra_meta(&["min_share"]),
         })
@@ -150,7 +165,6 @@ impl FileKind for SemanticIndex {
                 expected: format!("{} for P = {p} proposals", index_dtype(p)),
             });
         }
-        check_len(path, "index", self.index.len(), n, "ids, one per Gaussian")?;
         check_finite_floats(path, "descriptors", &self.descriptors)?;
         let d = self.dim;
         let zero = |r: usize| (0..d).all(|j| self.descriptors.get(r * d + j) == 0.0);
@@ -160,13 +174,24 @@ impl FileKind for SemanticIndex {
             Labels::U16(b) => check_ids(path, "index", b, p as u64, Some(none), "the table")?,
             Labels::U32(b) => check_ids(path, "index", b, p as u64, Some(none), "the table")?,
         }
-        if let Some(g) = (0..n).find(|&g| self.index.get(g).is_none() && self.share[g] != 0) {
+        let Some(share) = &self.share else {
+            if self.min_share == 0 {
+                return Ok(());
+            }
+            return Err(FormatError::MissingTensor {
+                path: path.to_string(),
+                tensor: "share".to_string(),
+                expected: format!("U8 [N] (required when min_share = {} > 0)", self.min_share),
+            });
+        };
+        check_len(path, "share", share.len(), n, "shares, one per Gaussian")?;
+        if let Some(g) = (0..n).find(|&g| self.index.get(g).is_none() && share[g] != 0) {
             return Err(invalid(
                 path,
                 "share",
                 format!(
                     "Gaussian {g} has no proposal but share {} (expected 0)",
-                    self.share[g]
+                    share[g]
                 ),
             ));
         }
@@ -187,7 +212,9 @@ impl FileKind for SemanticIndex {
             Labels::U16(b) => w.tensor("index", &[n], b),
             Labels::U32(b) => w.tensor("index", &[n], b),
         };
-        w.tensor("share", &[n], &self.share);
+        if let Some(share) = &self.share {
+            w.tensor("share", &[n], share);
+        }
     }
 
     fn counts(&self) -> BTreeMap<&'static str, u64> {

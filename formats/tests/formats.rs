@@ -225,7 +225,7 @@ fn a_semantic_index_over_more_than_65535_proposals_round_trips_as_u32() {
         descriptors: Floats::F16(table.into()),
         dim: 1,
         index: SemanticIndex::index_of(p, &ids),
-        share: vec![255u8, 128, 0, 200, 1].into(),
+        share: Some(vec![255u8, 128, 0, 200, 1].into()),
         min_share: quantise_share(0.5),
         extra: Default::default(),
     };
@@ -249,6 +249,45 @@ fn a_semantic_index_over_more_than_65535_proposals_round_trips_as_u32() {
     let err = SemanticIndex::from_checked_container(&c).unwrap_err();
     assert_eq!((err.code(), err.field()), ("dtype", Some("index")), "{err}");
     assert!(err.to_string().contains("U16 iff P <= 65535"), "{err}");
+}
+
+/// With `min_share` 0 the share cannot change which Gaussians are dominant, so the file
+/// may omit it: the index alone, 2 bytes a Gaussian (SPEC.md §4.17). With `min_share` > 0
+/// a missing share is a `missing_tensor` error naming it.
+#[test]
+fn a_semantic_index_without_share_is_two_bytes_a_gaussian_and_needs_min_share_0() {
+    let mut si = samples::semantic_index();
+    si.share = None;
+    si.min_share = 0;
+    round_trip(&si);
+    let n = si.num_gaussians();
+    let dominant: Vec<bool> = (0..n).map(|g| si.is_dominant(g)).collect();
+    assert_eq!(dominant, [true, true, true, false, true]);
+    let shares: Vec<u8> = (0..n).map(|g| si.share_of(g)).collect();
+    assert_eq!(shares, [255, 255, 255, 0, 255]);
+    let with = samples::semantic_index().to_bytes().unwrap();
+    let without = si.to_bytes().unwrap();
+    let c = Container::from_vec("x", without.clone()).unwrap();
+    assert!(!c.tensors().contains_key("share"));
+    // The tensor data shrinks by exactly the share's N bytes (headers differ too).
+    assert!(without.len() < with.len());
+    let mut needs = si.clone();
+    needs.min_share = 1;
+    let err = needs.to_bytes().unwrap_err();
+    assert_eq!(
+        (err.code(), err.field()),
+        ("missing_tensor", Some("share")),
+        "{err}"
+    );
+    let mut w = FileWriter::new(profuse_formats::Kind::SemanticIndex);
+    needs.fill(&mut w);
+    let c = Container::from_vec("needs.safetensors", w.to_bytes().unwrap()).unwrap();
+    let err = SemanticIndex::from_checked_container(&c).unwrap_err();
+    assert_eq!(
+        (err.code(), err.field()),
+        ("missing_tensor", Some("share")),
+        "{err}"
+    );
 }
 
 #[test]

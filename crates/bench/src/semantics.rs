@@ -1,8 +1,10 @@
 //! `query bench --semantics index|both|pq` (issue 24): one text query, LERF relevancy
 //! against the canonical negatives with the default threshold and the selection
 //! included, over N Gaussians, through a semantic index and through PQ codes in the same
-//! run. Storage is counted per Gaussian as the files hold it: PQ = M code bytes + 4 (norm)
-//! + 1 (valid); index = 2 (U16 index) + 1 (share), plus the [P, D] F16 table once.
+//! run. Storage is counted per Gaussian as the files hold it: PQ = M code bytes, plus 4
+//! (norm) and 1 (valid); index = 2 (the U16 index: `--semantics index` builds it with
+//! `min_share` 0 and no share, as `fuse --min-share 0` does) or 3 (with the share that a
+//! `both` fallback reads), plus the [P, D] F16 table once.
 
 use profuse_formats::label_space::CANONICAL_NEGATIVES;
 use profuse_formats::rng::SplitMix64;
@@ -29,7 +31,13 @@ pub fn run(a: &Params, semantics: Semantics) -> Result<Value, BoxError> {
     let mut rng = SplitMix(SplitMix64::new(0x51ab_1e24));
     let prompts = random_prompts(&mut rng, a.dim);
     let pq = random_pq(&mut rng, a.gaussians, a.dim, a.m)?;
-    let index = random_index(&mut rng, a.gaussians, a.proposals, a.dim);
+    let index = random_index(
+        &mut rng,
+        a.gaussians,
+        a.proposals,
+        a.dim,
+        semantics == Semantics::Both,
+    );
     let rule = Rule::Threshold(DEFAULT_RELEVANCY_THRESHOLD);
 
     let pq_s = fastest(
@@ -72,8 +80,10 @@ pub fn run(a: &Params, semantics: Semantics) -> Result<Value, BoxError> {
 
     let per_gaussian = |bytes: usize| bytes as f64 / a.gaussians.max(1) as f64;
     let pq_bytes = per_gaussian(pq.codes.len() + 4 * pq.norms.len() + pq.valid.len());
-    let index_bytes =
-        per_gaussian(index.index.dtype().size() * index.index.len() + index.share.len());
+    let index_bytes = per_gaussian(
+        index.index.dtype().size() * index.index.len()
+            + index.share.as_ref().map_or(0, |s| s.len()),
+    );
     let table_bytes = 2 * index.descriptors.len();
     let pq_entry = json!({
         "query_us": pq_s * 1e6,
@@ -85,8 +95,6 @@ pub fn run(a: &Params, semantics: Semantics) -> Result<Value, BoxError> {
         "cold_query_us": cold_s * 1e6,
         "prepare_us": prepare_s * 1e6,
         "bytes_per_gaussian": index_bytes,
-        // Index alone reads the 2-byte index; with a fallback the share too.
-        "bytes_read_per_gaussian": if semantics == Semantics::Both { 3.0 } else { 2.0 },
         "table_bytes": table_bytes,
         "selected": index_selected,
         "flagged": flagged,
@@ -127,9 +135,10 @@ fn random_prompts(rng: &mut SplitMix, d: usize) -> Prompts {
     }
 }
 
-/// N Gaussians spread over P random F16 unit rows; shares uniform in [1/255, 1] with the
-/// default `min_share` (about half the Gaussians dominant).
-fn random_index(rng: &mut SplitMix, n: usize, p: usize, d: usize) -> SemanticIndex {
+/// N Gaussians spread over P random F16 unit rows; with `shares`, shares uniform in
+/// [1/255, 1] with the default `min_share` (about half the Gaussians dominant), else no
+/// share and `min_share` 0 (every Gaussian dominant).
+fn random_index(rng: &mut SplitMix, n: usize, p: usize, d: usize, shares: bool) -> SemanticIndex {
     let mut table = Vec::with_capacity(p * d);
     let mut row = vec![0f32; d];
     for _ in 0..p {
@@ -144,11 +153,16 @@ fn random_index(rng: &mut SplitMix, n: usize, p: usize, d: usize) -> SemanticInd
         descriptors: Floats::F16(table.into()),
         dim: d,
         index: SemanticIndex::index_of(p, &ids),
-        share: (0..n)
-            .map(|_| 1 + (rng.next() % 255) as u8)
-            .collect::<Vec<u8>>()
-            .into(),
-        min_share: profuse_formats::quantise_share(profuse_fuse::DEFAULT_MIN_SHARE),
+        share: shares.then(|| {
+            (0..n)
+                .map(|_| 1 + (rng.next() % 255) as u8)
+                .collect::<Vec<u8>>()
+                .into()
+        }),
+        min_share: match shares {
+            true => profuse_formats::quantise_share(profuse_fuse::DEFAULT_MIN_SHARE),
+            false => 0,
+        },
         extra: Default::default(),
     }
 }

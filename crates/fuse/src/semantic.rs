@@ -4,7 +4,8 @@
 //!
 //! The dominant row comes from the same sparse rows of W that [`crate::finish`] multiplies
 //! (a running best and total per Gaussian over its few nonzero entries): no Gaussian x
-//! proposal matrix is formed, and the extra memory is the output (3 bytes a Gaussian).
+//! proposal matrix is formed, and the extra memory is the output (3 bytes a Gaussian, 2
+//! with `min_share` 0, which omits the share).
 
 use std::collections::BTreeMap;
 
@@ -54,7 +55,9 @@ pub fn semantic_index(p: &PartialSums, precision: Precision, min_share: f64) -> 
         descriptors: stored_table(&table.rows, precision),
         dim: d,
         index: SemanticIndex::index_of(rows, &best),
-        share: share.into(),
+        // With min_share 0 every Gaussian with a row is dominant: the share carries
+        // nothing a reader uses, and the index alone is 2 bytes a Gaussian.
+        share: (quantise_share(min_share) > 0).then(|| share.into()),
         min_share: quantise_share(min_share),
         extra: metadata(p),
     }

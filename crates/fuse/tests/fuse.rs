@@ -1603,6 +1603,18 @@ fn semantic_index_matches_the_brute_force_dominant_proposal() {
         let index = profuse_fuse::semantic_index(&partial, Precision::F32, 0.5);
         index.validate("index").unwrap();
         assert_eq!(index.min_share, 128);
+        // min_share 0: the same rows and index without the share (2 bytes a Gaussian),
+        // every Gaussian with a row dominant.
+        let compact = profuse_fuse::semantic_index(&partial, Precision::F32, 0.0);
+        compact.validate("compact").unwrap();
+        assert!(compact.share.is_none() && index.share.is_some());
+        assert_eq!(
+            (&compact.index, &compact.descriptors),
+            (&index.index, &index.descriptors)
+        );
+        let with_row = (0..index.num_gaussians()).filter(|&g| index.proposal(g).is_some());
+        assert!(with_row.clone().all(|g| compact.is_dominant(g)));
+        assert!(with_row.clone().any(|g| !index.is_dominant(g)));
         assert_eq!(index.num_proposals(), groups.num_groups);
         // The table is the group descriptors of the registration.
         let table: Vec<f32> = profuse_fuse::group_descriptors(&partial)
@@ -1617,15 +1629,15 @@ fn semantic_index_matches_the_brute_force_dominant_proposal() {
             assert_eq!(index.proposal(g), want.map(|w| w.0), "g {g}");
             let share = want.map_or(0, |w| profuse_formats::quantise_share(w.1));
             assert!(
-                index.share[g].abs_diff(share) <= 1,
+                index.share_of(g).abs_diff(share) <= 1,
                 "g {g}: share {} vs {share}",
-                index.share[g]
+                index.share_of(g)
             );
             let (groups_of_g, _) = partial.weights().row(g);
             if groups_of_g.len() == 1 && reg.features.valid[g] == 1 {
                 // All its weight in one proposal: its descriptor is that table row.
                 single += 1;
-                assert_eq!(index.share[g], 255);
+                assert_eq!(index.share_of(g), 255);
                 let r = index.proposal(g).unwrap() as usize;
                 let f = reg.features.features.to_f32_vec();
                 assert_eq!(f[g * d..][..d], table[r * d..][..d], "g {g}");

@@ -265,7 +265,7 @@ pub fn select_indexed_into(
     let pick = Pick {
         passes: &passes,
         rows: row_scores,
-        share: &indexed.index.share,
+        share: indexed.index.share.as_deref(),
         min_share: indexed.index.min_share,
         fallback: Some(fallback_score),
         threshold: t,
@@ -282,7 +282,8 @@ pub fn select_indexed_into(
 struct Pick<'a> {
     passes: &'a [bool],
     rows: &'a [f32],
-    share: &'a [u8],
+    /// Absent only with `min_share` 0, where every Gaussian with a row is dominant.
+    share: Option<&'a [u8]>,
     min_share: u8,
     fallback: Option<&'a (dyn Fn(usize) -> f32 + Sync)>,
     threshold: f32,
@@ -314,7 +315,7 @@ impl Pick<'_> {
         for (i, r) in chunk.iter().enumerate() {
             let (g, r) = (start + i, (*r).into());
             let score = match self.fallback {
-                Some(f) if r == none || self.share[g] < self.min_share => f(g),
+                Some(f) if r == none || self.share.is_some_and(|s| s[g] < self.min_share) => f(g),
                 _ if r != none && self.passes[r as usize] => self.rows[r as usize],
                 _ => continue,
             };

@@ -1537,7 +1537,7 @@ fn lossless_index_and_pq(
         descriptors: Floats::F32(table.concat().into()),
         dim: d,
         index: profuse_formats::SemanticIndex::index_of(p, &ids),
-        share: vec![255u8; n].into(),
+        share: Some(vec![255u8; n].into()),
         min_share: 128,
         extra: Default::default(),
     };
@@ -1633,11 +1633,11 @@ fn flagged_gaussians_fall_back_to_their_pq_scores_and_the_fast_path_agrees() {
     let (mut index, pq, _) = lossless_index_and_pq(50, 3000, 21);
     // A third of the Gaussians mix proposals: their share drops below min_share, and
     // their PQ code now encodes some other descriptor (proposal k in subspace 0 only).
-    let mut share = index.share.to_vec();
+    let mut share = index.share.clone().unwrap().to_vec();
     for g in (0..share.len()).step_by(3) {
         share[g] = 100;
     }
-    index.share = share.into();
+    index.share = Some(share.into());
     let mut codes = pq.codes.to_vec();
     for g in (0..index.num_gaussians()).step_by(3) {
         codes[2 * g + 1] = (codes[2 * g] + 1) % 50;
@@ -1687,13 +1687,13 @@ fn flagged_gaussians_fall_back_to_their_pq_scores_and_the_fast_path_agrees() {
 fn gaussians_without_a_proposal_are_never_selected_by_index() {
     let (mut index, _, _) = lossless_index_and_pq(10, 100, 31);
     let mut ids: Vec<Option<u32>> = (0..100).map(|g| index.proposal(g)).collect();
-    let mut share = index.share.to_vec();
+    let mut share = index.share.clone().unwrap().to_vec();
     for g in (0..100).step_by(4) {
         ids[g] = None;
         share[g] = 0;
     }
     index.index = profuse_formats::SemanticIndex::index_of(10, &ids);
-    index.share = share.into();
+    index.share = Some(share.into());
     let x = profuse_query::Indexed {
         index: &index,
         fallback: None,

@@ -1228,7 +1228,7 @@ fn a_semantic_index_gives_each_gaussian_its_proposals_class_probabilities() {
         descriptors: profuse_formats::Floats::F32(table_f32.into()),
         dim: d,
         index: profuse_formats::SemanticIndex::index_of(12, &ids),
-        share: share.into(),
+        share: Some(share.into()),
         min_share: 128,
         extra: Default::default(),
     };

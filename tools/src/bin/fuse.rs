@@ -131,6 +131,8 @@ struct RunArgs {
     semantic_index: Option<PathBuf>,
     /// Smallest share of a Gaussian's weight its largest proposal must hold to be its
     /// dominant proposal (in [0, 1]); the others fall back to their PQ code in a query.
+    /// 0 makes every Gaussian with a proposal dominant and omits the share from the file:
+    /// the index alone, 2 bytes a Gaussian (what `--semantics index` reads).
     #[arg(long, default_value_t = profuse_fuse::DEFAULT_MIN_SHARE)]
     min_share: f64,
 }
