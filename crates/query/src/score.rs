@@ -138,19 +138,21 @@ pub(crate) fn exact_cosines(f: &Features, units: &[Vec<f32>]) -> Vec<Vec<f32>> {
         .enumerate()
         .for_each(|(task, out)| {
             let mut row = vec![0.0f32; d];
-            let mut dots = vec![0.0f32; q + 1];
+            let mut dots = vec![0.0f32; q];
+            let vectors: Vec<&[f32]> = units.iter().map(Vec::as_slice).collect();
             for (r, scores) in out.chunks_exact_mut(q).enumerate() {
                 let g = task * rows_per_task + r;
                 if f.valid[g] != 1 {
                     continue;
                 }
                 read_row(&f.features, g * d, &mut row);
-                row_dots(&row, units, &mut dots);
-                let norm = dots[0].sqrt();
+                let norm = dot(&row, &row).sqrt();
                 if !(norm > 0.0 && norm.is_finite()) {
                     continue;
                 }
-                for (s, c) in scores.iter_mut().zip(&dots[1..]) {
+                // The same bits as `dot(u, row)` per unit; the product commutes exactly.
+                profuse_pq::dots(&row, &vectors, &mut dots);
+                for (s, c) in scores.iter_mut().zip(&dots) {
                     *s = c / norm;
                 }
             }
@@ -158,15 +160,6 @@ pub(crate) fn exact_cosines(f: &Features, units: &[Vec<f32>]) -> Vec<Vec<f32>> {
     (0..q)
         .map(|j| table.iter().skip(j).step_by(q).copied().collect())
         .collect()
-}
-
-/// `out[0] = dot(row, row)`, `out[1 + j] = dot(units[j], row)`, in one
-/// [`profuse_pq::dots`] call (the same bits as [`dot`]; the product commutes exactly).
-pub(crate) fn row_dots(row: &[f32], units: &[Vec<f32>], out: &mut [f32]) {
-    let vectors: Vec<&[f32]> = std::iter::once(row)
-        .chain(units.iter().map(Vec::as_slice))
-        .collect();
-    profuse_pq::dots(row, &vectors, out);
 }
 
 /// One descriptor row as f32; F16 rows go through `half`'s slice conversion, which uses
