@@ -77,20 +77,26 @@ fn pq_trains_encodes_and_queries_a_features_file() {
 
     // Query: the top 20 are descriptors of the prompt's class, best first, and agree with
     // the library.
-    let res = pq(&[
-        os("query"),
-        os("--pq"),
-        out.as_os_str(),
-        os("--prompts"),
-        prompts.as_os_str(),
-        os("--prompt"),
-        os("class7"),
-        os("--k"),
-        os("20"),
-        os("--quiet"),
-    ]);
-    super::assert_succeeded(&res);
-    let j = super::json(&res);
+    let query = |scan: &str| {
+        let res = pq(&[
+            os("query"),
+            os("--pq"),
+            out.as_os_str(),
+            os("--prompts"),
+            prompts.as_os_str(),
+            os("--prompt"),
+            os("class7"),
+            os("--k"),
+            os("20"),
+            os("--scan"),
+            os(scan),
+            os("--quiet"),
+        ]);
+        super::assert_succeeded(&res);
+        assert!(res.stderr.is_empty());
+        super::json(&res)
+    };
+    let j = query("fast");
     let ids: Vec<u64> = j["ids"]
         .as_array()
         .unwrap()
@@ -108,6 +114,14 @@ fn pq_trains_encodes_and_queries_a_features_file() {
         ids.iter().all(|&i| gen.class_of(i) == 7 && i % 10 != 9),
         "{ids:?}"
     );
+    assert_eq!(j["scan"], "fast");
+    assert!(j["candidates"].as_u64().unwrap() >= 20, "{j}");
+    assert!(j["prepare_ms"].as_f64().unwrap() >= 0.0);
+    // The exhaustive scan returns the same ids and scores.
+    let exhaustive = query("exhaustive");
+    assert_eq!(exhaustive["scan"], "exhaustive");
+    assert_eq!(exhaustive["ids"], j["ids"]);
+    assert_eq!(exhaustive["scores"], j["scores"]);
     assert!(scores.windows(2).all(|w| w[0] >= w[1]), "{scores:?}");
     let p = Prompts::read(&prompts).unwrap();
     let lib = profuse_pq::search(&code, p.embedding(7), profuse_pq::DEFAULT_SHORTLIST, 20).unwrap();
@@ -250,6 +264,16 @@ fn pq_bench_reports_the_measured_keys() {
     }
     assert!(j["recall_at_100"].as_f64().unwrap() >= 0.99, "{j}");
     assert_eq!(j["n"], 6000);
+    for key in [
+        "fast_query_ms",
+        "fast_prepare_ms",
+        "fast_candidates",
+        "fast_packed_mb",
+    ] {
+        assert!(j[key].as_f64().unwrap() > 0.0, "{key}: {j}");
+    }
+    // Every query's fast-scan result is the exhaustive one.
+    assert_eq!(j["fast_same_as_exhaustive"], 1.0, "{j}");
 }
 
 /// `crates/pq/python/bench_vs_faiss.py --quick` (issue 23) runs ours (this build's `pq`)
@@ -297,5 +321,11 @@ fn bench_vs_faiss_quick_reports_every_ratio_and_recall() {
         let r = j[key].as_f64().unwrap();
         assert!((0.3..=1.0).contains(&r), "{key}: {j}");
     }
+    // The fast scan finds what the exhaustive scan finds.
+    assert_eq!(
+        j["recall_at_100_ours"], j["recall_at_100_ours_exhaustive"],
+        "{j}"
+    );
+    assert!(j["prepare_ms_ours"].as_f64().unwrap() > 0.0, "{j}");
     assert_eq!(j["n"], 5000);
 }

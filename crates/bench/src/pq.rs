@@ -4,7 +4,9 @@
 use std::time::Instant;
 
 use profuse_pq::rayon::prelude::*;
-use profuse_pq::{exact_cosine, search, synthetic::Clustered, train_vectors, TrainParams};
+use profuse_pq::{
+    exact_cosine, search, synthetic::Clustered, train_vectors, FastScan, TrainParams,
+};
 use serde_json::{json, Value};
 
 use crate::common::{self, Progress};
@@ -120,6 +122,14 @@ pub fn run(a: &Params, progress: &dyn Progress) -> Result<Value, BoxError> {
         "query_ms": q.query_ms,
         "query_cpu_ms": q.query_cpu_ms,
         "adc_ms": q.adc_ms,
+        "fast_prepare_ms": q.fast.prepare_ms,
+        "fast_query_ms": q.fast.query_ms,
+        "fast_query_cpu_ms": q.fast.query_cpu_ms,
+        "fast_candidates": q.fast.candidates,
+        "fast_rounds": q.fast.rounds,
+        "fast_same_as_exhaustive": q.fast.same,
+        "fast_kernel": q.fast.kernel,
+        "fast_packed_mb": q.fast.packed_mb,
         "recall_at_100": q.recall,
         "recall_at_100_shortlist_100": q.recall_shortlist_k,
         "reconstruction_cosine": recon.0 / recon.1.max(1) as f64,
@@ -135,6 +145,20 @@ struct QueryTimings {
     adc_ms: f64,
     recall: f64,
     recall_shortlist_k: f64,
+    fast: FastTimings,
+}
+
+/// The fast-scan search on the same queries: medians, and the share of queries whose
+/// result equals the exhaustive search's.
+struct FastTimings {
+    prepare_ms: f64,
+    query_ms: f64,
+    query_cpu_ms: f64,
+    candidates: f64,
+    rounds: f64,
+    same: f64,
+    kernel: &'static str,
+    packed_mb: f64,
 }
 
 fn query_timings(
@@ -143,6 +167,12 @@ fn query_timings(
     pq: &profuse_pq::Pq,
     progress: &dyn Progress,
 ) -> Result<QueryTimings, BoxError> {
+    let t0 = Instant::now();
+    let fast = FastScan::new(pq)?;
+    let prepare_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let (mut fast_ms, mut fast_cpu, mut fast_cand, mut fast_rounds) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut same = 0usize;
     progress.start("queries", a.queries as u64);
     let (mut query_ms, mut query_cpu_ms, mut adc_ms) = (Vec::new(), Vec::new(), Vec::new());
     let (mut recalls, mut recalls_k) = (Vec::new(), Vec::new());
@@ -166,6 +196,20 @@ fn query_timings(
         query_ms.push(best);
         query_cpu_ms.push(best_cpu);
         adc_ms.push(best_adc);
+        let (fast_top, stats) = fast.search(pq, &q, k)?;
+        same += usize::from(fast_top == search(pq, &q, a.shortlist, k)?);
+        fast_cand.push(stats.candidates as f64);
+        fast_rounds.push(stats.rounds as f64);
+        let (mut best, mut best_cpu) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..5 {
+            let cpu0 = common::process_cpu_s();
+            let t0 = Instant::now();
+            std::hint::black_box(fast.search(pq, &q, k)?);
+            best = best.min(t0.elapsed().as_secs_f64() * 1e3);
+            best_cpu = best_cpu.min((common::process_cpu_s() - cpu0) * 1e3);
+        }
+        fast_ms.push(best);
+        fast_cpu.push(best_cpu);
         let exact: Vec<(u32, f32)> = (0..a.n)
             .into_par_iter()
             .map(|i| (i as u32, exact_cosine(pq, i, &q)))
@@ -193,5 +237,15 @@ fn query_timings(
         adc_ms: common::median(&mut adc_ms),
         recall: mean(&recalls),
         recall_shortlist_k: mean(&recalls_k),
+        fast: FastTimings {
+            prepare_ms,
+            query_ms: common::median(&mut fast_ms),
+            query_cpu_ms: common::median(&mut fast_cpu),
+            candidates: common::median(&mut fast_cand),
+            rounds: common::median(&mut fast_rounds),
+            same: same as f64 / a.queries.max(1) as f64,
+            kernel: fast.kernel(),
+            packed_mb: fast.packed_bytes() as f64 / 1e6,
+        },
     })
 }

@@ -110,38 +110,17 @@ impl LookupTable {
     }
 
     /// Inner products of consecutive codes `[n, M]` into `out` (n values); each equals
-    /// [`LookupTable::inner_product`] bit for bit.
-    ///
-    /// The pass is bound by loads (one table load per code byte), so it sums four codes
-    /// side by side (four independent addition chains hide the add latency) and reads
-    /// each code eight bytes at a time (one load instead of eight).
+    /// [`LookupTable::inner_product`] bit for bit (see `sum_lanes`).
     ///
     /// # Panics
     /// If `codes.len() != out.len() * M`.
     pub fn inner_products(&self, codes: &[u8], out: &mut [f32]) {
-        const LANES: usize = 4;
         let m = self.table.len();
         assert_eq!(codes.len(), out.len() * m, "codes length");
-        let words = m / 8;
         let mut groups = codes.chunks_exact(LANES * m);
         let mut outs = out.chunks_exact_mut(LANES);
         for (g, o) in (&mut groups).zip(&mut outs) {
-            let rows: [&[u8]; LANES] = std::array::from_fn(|i| &g[i * m..(i + 1) * m]);
-            let mut acc = [0f32; LANES];
-            for (w, t8) in self.table[..words * 8].chunks_exact(8).enumerate() {
-                let bytes: [u64; LANES] = std::array::from_fn(|i| word(rows[i], w));
-                for (b, t) in t8.iter().enumerate() {
-                    for (a, &v) in acc.iter_mut().zip(&bytes) {
-                        *a += t[((v >> (8 * b)) & 0xff) as usize];
-                    }
-                }
-            }
-            for (s, t) in self.table.iter().enumerate().skip(words * 8) {
-                for (a, row) in acc.iter_mut().zip(&rows) {
-                    *a += t[row[s] as usize];
-                }
-            }
-            o.copy_from_slice(&acc);
+            o.copy_from_slice(&self.sum_lanes(std::array::from_fn(|i| &g[i * m..(i + 1) * m])));
         }
         for (c, o) in groups
             .remainder()
@@ -151,6 +130,73 @@ impl LookupTable {
             *o = self.inner_product(c);
         }
     }
+
+    /// Inner products of the vectors `ids` of `codes` (`[N, M]`) into `out`, each equal
+    /// to [`LookupTable::inner_product`] bit for bit (four codes side by side, like
+    /// [`LookupTable::inner_products`]).
+    ///
+    /// # Panics
+    /// If `ids.len() != out.len()` or an id is out of range.
+    pub fn inner_products_of(&self, codes: &[u8], ids: &[u32], out: &mut [f32]) {
+        let m = self.table.len();
+        assert_eq!(ids.len(), out.len(), "one output per id");
+        let row = |id: u32| &codes[id as usize * m..(id as usize + 1) * m];
+        let mut groups = ids.chunks_exact(LANES);
+        let mut outs = out.chunks_exact_mut(LANES);
+        for (j, (g, o)) in (&mut groups).zip(&mut outs).enumerate() {
+            // The rows are scattered: ask for those a few groups ahead now.
+            for &id in ids.iter().skip((j + PREFETCH_GROUPS) * LANES).take(LANES) {
+                prefetch(row(id));
+            }
+            o.copy_from_slice(&self.sum_lanes(std::array::from_fn(|i| row(g[i]))));
+        }
+        for (&id, o) in groups.remainder().iter().zip(outs.into_remainder()) {
+            *o = self.inner_product(row(id));
+        }
+    }
+
+    /// The inner products of four codes of M bytes each. The pass is bound by loads (one
+    /// table load per code byte), so the four sums run side by side (independent addition
+    /// chains hide the add latency) and each code is read eight bytes at a time.
+    fn sum_lanes(&self, rows: [&[u8]; LANES]) -> [f32; LANES] {
+        let m = self.table.len();
+        let words = m / 8;
+        let mut acc = [0f32; LANES];
+        for (w, t8) in self.table[..words * 8].chunks_exact(8).enumerate() {
+            let bytes: [u64; LANES] = std::array::from_fn(|i| word(rows[i], w));
+            for (b, t) in t8.iter().enumerate() {
+                for (a, &v) in acc.iter_mut().zip(&bytes) {
+                    *a += t[((v >> (8 * b)) & 0xff) as usize];
+                }
+            }
+        }
+        for (s, t) in self.table.iter().enumerate().skip(words * 8) {
+            for (a, row) in acc.iter_mut().zip(&rows) {
+                *a += t[row[s] as usize];
+            }
+        }
+        acc
+    }
+}
+
+/// Codes summed side by side in [`LookupTable::inner_products`].
+const LANES: usize = 4;
+
+/// How many groups of [`LANES`] rows ahead [`LookupTable::inner_products_of`] prefetches.
+const PREFETCH_GROUPS: usize = 16;
+
+/// Hints that `bytes` will be read soon (every cache line of it); a no-op off x86-64.
+#[allow(unsafe_code)]
+fn prefetch(bytes: &[u8]) {
+    #[cfg(target_arch = "x86_64")]
+    for line in bytes.chunks(64) {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: SSE is part of every x86-64 CPU, and a prefetch never faults or reads
+        // into the program: the address only has to be computed.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().cast()) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = bytes;
 }
 
 /// Bytes `8w..8w + 8` of a code as a little-endian word (byte b of the code in bits
@@ -161,7 +207,7 @@ fn word(code: &[u8], w: usize) -> u64 {
     u64::from_le_bytes(b)
 }
 
-fn cosine_of(ip: f32, query_norm: f32, norm: f32) -> f32 {
+pub(crate) fn cosine_of(ip: f32, query_norm: f32, norm: f32) -> f32 {
     if norm > 0.0 {
         ip / (query_norm * norm)
     } else {
@@ -349,7 +395,7 @@ fn dot_f64(a: &[f32], b: &[f32]) -> f64 {
 
 /// Checks that a (possibly hand-built) pq's tensors agree, so that scoring cannot index
 /// out of bounds.
-fn check_pq(pq: &Pq) -> Result<(), PqError> {
+pub(crate) fn check_pq(pq: &Pq) -> Result<(), PqError> {
     let n = pq.len();
     if pq.m == 0 || pq.dsub == 0 {
         return Err(PqError::Inconsistent(format!(

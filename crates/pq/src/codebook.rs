@@ -105,6 +105,21 @@ impl Codebook {
     pub fn encode(&self, x: &[f32], code: &mut [u8]) {
         assert_eq!(x.len(), self.dim(), "vector length");
         assert_eq!(code.len(), self.m, "code length");
+        match EncodeLevel::detect() {
+            #[cfg(target_arch = "x86_64")]
+            EncodeLevel::Avx512 => wide::encode_avx512(self, x, code),
+            #[cfg(target_arch = "x86_64")]
+            EncodeLevel::Avx2 => wide::encode_avx2(self, x, code),
+            EncodeLevel::Baseline => self.encode_inline(x, code),
+        }
+    }
+
+    /// [`Codebook::encode`]'s loop, inlined into each of its instruction-set variants:
+    /// the same IEEE operations in the same order (Rust never fuses a multiply and an
+    /// add on its own), so every variant gives the same codes; wider registers only
+    /// compute more of the 256 distances at once.
+    #[inline(always)]
+    fn encode_inline(&self, x: &[f32], code: &mut [u8]) {
         let mut dist = [0f32; KSUB];
         for (m, c) in code.iter_mut().enumerate() {
             *c = nearest(
@@ -210,6 +225,149 @@ impl Codebook {
     }
 }
 
+/// The widest registers [`Codebook::encode`] may use, chosen at run time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum EncodeLevel {
+    Baseline,
+    #[cfg(target_arch = "x86_64")]
+    Avx2,
+    #[cfg(target_arch = "x86_64")]
+    Avx512,
+}
+
+impl EncodeLevel {
+    pub(crate) fn detect() -> Self {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("avx512vl")
+            {
+                return EncodeLevel::Avx512;
+            }
+            if std::arch::is_x86_feature_detected!("avx2") {
+                return EncodeLevel::Avx2;
+            }
+        }
+        EncodeLevel::Baseline
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod wide {
+    //! [`Codebook::encode`] with AVX2 and AVX-512 registers. For the default dsub = 4
+    //! the 256 distances and their first minimum are explicit vector code: each distance
+    //! is `((a·a + b·b) + c·c) + e·e` with `a = x0 − c0` etc., separate IEEE multiplies
+    //! and adds in [`super::distances4`]'s order (no FMA), so the codes are the baseline
+    //! build's; other dsub compile [`Codebook::encode_inline`] for the wider registers.
+
+    use std::arch::x86_64::*;
+
+    use super::{Codebook, KSUB};
+
+    pub(super) fn encode_avx2(cb: &Codebook, x: &[f32], code: &mut [u8]) {
+        assert!(std::arch::is_x86_feature_detected!("avx2"));
+        // SAFETY: AVX2 is present (checked above).
+        unsafe { avx2(cb, x, code) }
+    }
+
+    pub(super) fn encode_avx512(cb: &Codebook, x: &[f32], code: &mut [u8]) {
+        assert!(std::arch::is_x86_feature_detected!("avx512f"));
+        assert!(std::arch::is_x86_feature_detected!("avx512vl"));
+        // SAFETY: AVX-512 F and VL are present (checked above).
+        unsafe { avx512(cb, x, code) }
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn avx2(cb: &Codebook, x: &[f32], code: &mut [u8]) {
+        if cb.dsub != 4 {
+            return cb.encode_inline(x, code);
+        }
+        let mut dist = [0f32; KSUB];
+        for (m, c) in code.iter_mut().enumerate() {
+            let ct = cb.sub_transposed(m);
+            assert!(ct.len() == 4 * KSUB && x.len() >= 4 * m + 4);
+            let xs = [0, 1, 2, 3].map(|j| _mm256_set1_ps(x[4 * m + j]));
+            let mut best = _mm256_set1_ps(f32::INFINITY);
+            for i in (0..KSUB).step_by(8) {
+                // SAFETY: i + 8 <= 256, and row j of `ct` spans j·256..(j + 1)·256.
+                let d = unsafe { distance8(&xs, ct.as_ptr().add(i)) };
+                // `min(d, best)` keeps `best` where d is NaN: a NaN never wins.
+                best = _mm256_min_ps(d, best);
+                // SAFETY: i + 8 <= 256.
+                unsafe { _mm256_storeu_ps(dist.as_mut_ptr().add(i), d) };
+            }
+            let min = _mm256_set1_ps(horizontal_min8(best));
+            *c = 0;
+            for i in (0..KSUB).step_by(8) {
+                // SAFETY: i + 8 <= 256.
+                let d = unsafe { _mm256_loadu_ps(dist.as_ptr().add(i)) };
+                let hits = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(d, min));
+                if hits != 0 {
+                    *c = (i + hits.trailing_zeros() as usize) as u8;
+                    break;
+                }
+            }
+        }
+    }
+
+    /// # Safety
+    /// `ct` points at the transposed dsub = 4 table of one sub-quantiser, offset by the
+    /// first of 8 centroids (rows 256 floats apart).
+    #[target_feature(enable = "avx2")]
+    unsafe fn distance8(xs: &[__m256; 4], ct: *const f32) -> __m256 {
+        // SAFETY: the caller guarantees 4 rows of at least 8 floats from `ct`.
+        let c = [0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_ps(ct.add(j * KSUB)) });
+        let t = [0, 1, 2, 3].map(|j| _mm256_sub_ps(xs[j], c[j]));
+        let sq = t.map(|v| _mm256_mul_ps(v, v));
+        _mm256_add_ps(_mm256_add_ps(_mm256_add_ps(sq[0], sq[1]), sq[2]), sq[3])
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn horizontal_min8(v: __m256) -> f32 {
+        let mut lanes = [0f32; 8];
+        // SAFETY: `lanes` holds 8 floats.
+        unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), v) };
+        lanes
+            .iter()
+            .fold(f32::INFINITY, |a, &b| if b < a { b } else { a })
+    }
+
+    #[target_feature(enable = "avx512f,avx512vl,avx2")]
+    fn avx512(cb: &Codebook, x: &[f32], code: &mut [u8]) {
+        if cb.dsub != 4 {
+            return cb.encode_inline(x, code);
+        }
+        for (m, c) in code.iter_mut().enumerate() {
+            let ct = cb.sub_transposed(m);
+            assert!(ct.len() == 4 * KSUB && x.len() >= 4 * m + 4);
+            let xs = [0, 1, 2, 3].map(|j| _mm512_set1_ps(x[4 * m + j]));
+            // All 256 distances stay in 16 registers.
+            let d: [__m512; 16] = std::array::from_fn(|g| {
+                // SAFETY: 16·g + 16 <= 256, and row j of `ct` spans j·256..(j + 1)·256.
+                let c = [0, 1, 2, 3]
+                    .map(|j| unsafe { _mm512_loadu_ps(ct.as_ptr().add(j * KSUB + 16 * g)) });
+                let t = [0, 1, 2, 3].map(|j| _mm512_sub_ps(xs[j], c[j]));
+                let sq = t.map(|v| _mm512_mul_ps(v, v));
+                _mm512_add_ps(_mm512_add_ps(_mm512_add_ps(sq[0], sq[1]), sq[2]), sq[3])
+            });
+            // `min(d, best)` keeps `best` where d is NaN: a NaN never wins.
+            let best = d
+                .iter()
+                .fold(_mm512_set1_ps(f32::INFINITY), |b, &v| _mm512_min_ps(v, b));
+            let min = _mm512_set1_ps(_mm512_reduce_min_ps(best));
+            *c = 0;
+            for (g, &v) in d.iter().enumerate() {
+                let hits = _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(v, min);
+                if hits != 0 {
+                    *c = (16 * g + hits.trailing_zeros() as usize) as u8;
+                    break;
+                }
+            }
+        }
+    }
+}
+
 /// `[M, 256, dsub]` -> `[M, dsub, 256]`.
 pub(crate) fn transpose(centroids: &[f32], m: usize, dsub: usize) -> Vec<f32> {
     let mut t = vec![0f32; centroids.len()];
@@ -228,12 +386,14 @@ pub(crate) fn transpose(centroids: &[f32], m: usize, dsub: usize) -> Vec<f32> {
 /// Distances are `sum_j (x_j - c_j)^2` accumulated over `j` in order in f32, the
 /// formula of faiss's `fvec_L2sqr` (its AVX2 kernels may fuse the multiply-add, so a
 /// near-tie can round the other way there; the faiss test counts such cases).
+#[inline(always)]
 pub(crate) fn nearest(x: &[f32], ct: &[f32], dist: &mut [f32; KSUB]) -> u8 {
     sub_distances(x, ct, dist);
     argmin_first(dist)
 }
 
 /// The squared distances [`nearest`] compares, into `dist`.
+#[inline(always)]
 pub(crate) fn sub_distances(x: &[f32], ct: &[f32], dist: &mut [f32; KSUB]) {
     if let (&[x0, x1, x2, x3], true) = (x, ct.len() == 4 * KSUB) {
         distances4([x0, x1, x2, x3], ct, dist);
@@ -244,6 +404,7 @@ pub(crate) fn sub_distances(x: &[f32], ct: &[f32], dist: &mut [f32; KSUB]) {
 
 /// Squared distances to all 256 centroids, any `dsub`: one pass over the 256 lanes
 /// per dimension (vectorises over centroids).
+#[inline(always)]
 fn distances(x: &[f32], ct: &[f32], dist: &mut [f32; KSUB]) {
     let (first, rest) = ct.split_at(KSUB);
     let x0 = x[0];
@@ -261,6 +422,7 @@ fn distances(x: &[f32], ct: &[f32], dist: &mut [f32; KSUB]) {
 
 /// [`distances`] for the default `dsub = 4`, summed in registers (same operations in the
 /// same order, so the same bits).
+#[inline(always)]
 fn distances4(x: [f32; 4], ct: &[f32], dist: &mut [f32; KSUB]) {
     let (r0, rest) = ct.split_at(KSUB);
     let (r1, rest) = rest.split_at(KSUB);
@@ -274,6 +436,7 @@ fn distances4(x: [f32; 4], ct: &[f32], dist: &mut [f32; KSUB]) {
 /// First index of the minimum (a NaN never wins; all-NaN gives 0). Lane-wise minima
 /// and block-wise equality tests vectorise; only the block holding the minimum is
 /// scanned element by element.
+#[inline(always)]
 pub(crate) fn argmin_first(dist: &[f32; KSUB]) -> u8 {
     const LANES: usize = 16;
     let mut lanes = [f32::INFINITY; LANES];
@@ -309,6 +472,38 @@ mod tests {
         assert_eq!(argmin_first(&d), 37);
         let d = [f32::NAN; KSUB];
         assert_eq!(argmin_first(&d), 0);
+    }
+
+    #[test]
+    fn every_instruction_set_encodes_alike() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for dsub in [4usize, 3, 8] {
+            let m = 6;
+            let c: Vec<f32> = (0..m * KSUB * dsub)
+                .map(|_| rng.random_range(-1.0f32..1.0))
+                .collect();
+            let cb = Codebook::new(m, dsub, c).unwrap_or_else(|e| panic!("{e}"));
+            for _ in 0..200 {
+                let x: Vec<f32> = (0..m * dsub)
+                    .map(|_| rng.random_range(-1.2f32..1.2))
+                    .collect();
+                let mut want = vec![0u8; m];
+                cb.encode_inline(&x, &mut want);
+                #[cfg(target_arch = "x86_64")]
+                {
+                    let mut got = vec![0u8; m];
+                    if std::arch::is_x86_feature_detected!("avx2") {
+                        wide::encode_avx2(&cb, &x, &mut got);
+                        assert_eq!(got, want, "avx2, dsub {dsub}");
+                    }
+                    if EncodeLevel::detect() == EncodeLevel::Avx512 {
+                        wide::encode_avx512(&cb, &x, &mut got);
+                        assert_eq!(got, want, "avx512, dsub {dsub}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]

@@ -10,7 +10,7 @@ use std::process::Command;
 use profuse_formats::{f16, Features, FileKind, Floats, Pq};
 use profuse_pq::{
     adc_scores, decode, decode_all, exact_cosine, search, synthetic::Clustered, train,
-    train_vectors, Codebook, LookupTable, PqError, TrainParams, DEFAULT_SHORTLIST, KSUB,
+    train_vectors, Codebook, FastScan, LookupTable, PqError, TrainParams, DEFAULT_SHORTLIST, KSUB,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -201,6 +201,13 @@ fn adc_inner_product_equals_the_decoded_dot_product() {
         assert!((f64::from(scores[i]) - cos).abs() < 1e-5, "{i}");
         assert!((f64::from(exact_cosine(&pq, i, &q)) - cos).abs() < 1e-6);
     }
+    // Scattered ids (repeats, any order, a remainder past the groups of four) too.
+    let ids: Vec<u32> = (0..1003u32).map(|i| (i * 7919 + 13) % 3000).collect();
+    let mut got = vec![0f32; ids.len()];
+    lut.inner_products_of(&pq.codes, &ids, &mut got);
+    for (&id, g) in ids.iter().zip(&got) {
+        assert_eq!(g.to_bits(), ips[id as usize].to_bits(), "{id}");
+    }
 }
 
 /// The exact top-k by brute force over decoded vectors (f64), best first, ties by id.
@@ -326,6 +333,122 @@ fn adc_shortlist_recall_at_100_is_at_least_0_99_at_the_default_shortlist() {
     // The quantiser keeps the descriptors recognisable.
     let cos = profuse_pq::reconstruction_cosine(&features, &pq).unwrap();
     assert!(cos > 0.9, "reconstruction cosine {cos}");
+}
+
+/// A pq of `n` CLIP-like 128-d vectors in `classes` classes (every 11th invalid), M = 32.
+fn clip_like_pq(n: usize, classes: usize, seed: u64) -> (Clustered, Pq) {
+    let gen = Clustered::new(128, classes, 0.62, seed);
+    let features = gen.features(n, 11);
+    let params = TrainParams {
+        m: 32,
+        iters: 4,
+        sample: 4096,
+        seed: 3,
+    };
+    let pq = train(&features, &params)
+        .unwrap()
+        .encode_features(&features)
+        .unwrap();
+    (gen, pq)
+}
+
+#[test]
+fn fast_scan_returns_the_exact_top_k() {
+    // Few large classes: the ADC top 1000 of a query is a sliver of its class, ranked by
+    // detail that the 4-bit codes do not see, so the candidate rounds must find it.
+    for (n, classes, seed) in [
+        (30_000usize, 6usize, 31u64),
+        (20_000, 200, 32),
+        (5_000, 1, 33),
+    ] {
+        let (gen, pq) = clip_like_pq(n, classes, seed);
+        let fs = FastScan::new(&pq).unwrap();
+        assert_eq!(fs.packed_bytes(), n.div_ceil(32) * 16 * 32);
+        for qi in 0..6 {
+            let q = gen.query(qi % classes, 0.5, qi as u64 + 100);
+            let exact = brute_force_top(&pq, &q, 100);
+            assert_eq!(search(&pq, &q, DEFAULT_SHORTLIST, 100).unwrap(), exact);
+            for k in [100, 10, 40, 1] {
+                let (got, stats) = fs.search(&pq, &q, k).unwrap();
+                assert_eq!(got, exact[..k], "n {n} classes {classes} query {qi} k {k}");
+                assert!(stats.candidates >= k);
+                assert!(stats.rounds >= 1);
+            }
+        }
+    }
+}
+
+#[test]
+fn fast_scan_handles_ties_invalid_rows_tiny_inputs_and_k_0() {
+    // Duplicated vectors (equal scores across block boundaries), every 13th invalid.
+    let cb = random_codebook(6, 4, 41);
+    let half = 1_000;
+    let mut rng = ChaCha8Rng::seed_from_u64(42);
+    let mut codes = vec![0u8; half * 6];
+    rng.fill(&mut codes[..]);
+    codes.extend_from_within(..);
+    let valid: Vec<u8> = (0..2 * half).map(|i| u8::from(i % 13 != 0)).collect();
+    let norms: Vec<f32> = codes
+        .chunks_exact(6)
+        .zip(&valid)
+        .map(|(c, &v)| if v == 1 { cb.decoded_norm(c) } else { 0.0 })
+        .collect();
+    let pq = cb.to_pq(codes, norms, valid);
+    let fs = FastScan::new(&pq).unwrap();
+    for qi in 0..5 {
+        let q: Vec<f32> = (0..24)
+            .map(|i| ((i * (qi + 2)) as f32 * 0.37).sin())
+            .collect();
+        for k in [100, 3, 2000, 1] {
+            let want = brute_force_top(&pq, &q, k);
+            assert_eq!(fs.search(&pq, &q, k).unwrap().0, want, "q {qi} k {k}");
+        }
+        assert!(fs.search(&pq, &q, 0).unwrap().0.is_empty());
+    }
+    // Fewer vectors than a block, and no valid vector at all.
+    let small = cb.to_pq(
+        pq.codes[..5 * 6].to_vec(),
+        pq.norms[..5].to_vec(),
+        vec![1, 0, 1, 1, 0],
+    );
+    let q: Vec<f32> = (0..24).map(|i| i as f32 - 11.5).collect();
+    let fs_small = FastScan::new(&small).unwrap();
+    assert_eq!(
+        fs_small.search(&small, &q, 10).unwrap().0,
+        brute_force_top(&small, &q, 10)
+    );
+    let none = cb.to_pq(vec![0; 3 * 6], vec![0.0; 3], vec![0; 3]);
+    assert!(FastScan::new(&none)
+        .unwrap()
+        .search(&none, &q, 10)
+        .unwrap()
+        .0
+        .is_empty());
+    // Wrong pq, wrong query: typed errors.
+    assert!(matches!(
+        fs.search(&small, &q, 10),
+        Err(PqError::Inconsistent(_))
+    ));
+    assert!(matches!(
+        fs.search(&pq, &q[..20], 10),
+        Err(PqError::QueryDim { .. })
+    ));
+    assert!(matches!(
+        fs.search(&pq, &[0.0; 24], 10),
+        Err(PqError::DegenerateQuery)
+    ));
+}
+
+#[test]
+fn fast_scan_groups_cover_16_groups_per_subspace() {
+    let (_, pq) = clip_like_pq(8_000, 20, 51);
+    let fs = FastScan::new(&pq).unwrap();
+    for s in 0..pq.m {
+        let groups: std::collections::BTreeSet<u8> =
+            (0..=255u8).map(|c| fs.group_of(s, c)).collect();
+        assert!(groups.iter().all(|&g| g < 16));
+        assert_eq!(groups.len(), 16, "subspace {s} uses every group");
+    }
 }
 
 #[test]
