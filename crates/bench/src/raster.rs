@@ -139,6 +139,14 @@ fn configs(only: Option<usize>) -> Vec<(String, Option<usize>)> {
     }
 }
 
+/// Lanes of the blend's pixel groups.
+fn lanes(raster: &Rasterizer<'_>) -> f64 {
+    match raster.simd() {
+        Simd::Portable => 4.0,
+        Simd::Avx512 => 16.0,
+    }
+}
+
 /// Runs the benchmark on Gaussians already loaded (`load_s` seconds).
 pub fn run(
     p: &Params,
@@ -172,20 +180,42 @@ pub fn run(
         let mut out = ViewRender::default();
         raster.render_view_into(&cams, 0, &opts, &mut out)?;
         let (mut times, mut cpus) = (Vec::new(), Vec::new());
+        let mut phases: [Vec<f64>; 4] = Default::default();
+        let (mut blends, mut rates, mut occupancy, mut inserted) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         progress.start(&name, cams.len() as u64);
         for v in 0..cams.len() {
             // The fastest of `repeat` renders of the view: other load on the machine only
             // ever slows a render down.
             let (mut best, mut best_cpu) = (f64::INFINITY, f64::INFINITY);
+            let (mut best_stats, mut best_phases) = (out.stats(), out.phases());
             for _ in 0..p.repeat {
                 let cpu0 = common::process_cpu_s();
                 let t = Instant::now();
                 raster.render_view_into(&cams, v, &opts, &mut out)?;
-                best = best.min(t.elapsed().as_secs_f64());
+                let wall = t.elapsed().as_secs_f64();
+                if wall < best {
+                    (best_stats, best_phases) = (out.stats(), out.phases());
+                }
+                best = best.min(wall);
                 best_cpu = best_cpu.min(common::process_cpu_s() - cpu0);
             }
             times.push(best);
             cpus.push(best_cpu);
+            let ph = best_phases;
+            for (all, d) in phases
+                .iter_mut()
+                .zip([ph.project, ph.sort, ph.bucket, ph.blend])
+            {
+                all.push(d.as_secs_f64() * 1e3);
+            }
+            let c = best_stats.counts;
+            if c.groups > 0 {
+                blends.push(c.blends as f64);
+                rates.push(c.blends as f64 / best_cpu);
+                occupancy.push(c.live_lanes as f64 / (c.groups as f64 * lanes(&raster)));
+                inserted.push(c.inserted as f64);
+            }
             if k.is_none() {
                 visible.push(out.stats().visible);
                 pairs.push(out.stats().tile_pairs);
@@ -198,6 +228,27 @@ pub fn run(
             name.replace("_s", "_cpu_s"),
             json!(common::median(&mut cpus)),
         );
+        let [mut project, mut sort, mut bucket, mut blend] = phases;
+        results.insert(
+            name.replace("_s", "_phases_ms"),
+            json!({
+                "project": common::median(&mut project),
+                "sort": common::median(&mut sort),
+                "bucket": common::median(&mut bucket),
+                "blend": common::median(&mut blend),
+            }),
+        );
+        if !blends.is_empty() {
+            results.insert(
+                name.replace("_s", "_counts"),
+                json!({
+                    "blends": common::median(&mut blends),
+                    "blends_per_cpu_s": common::median(&mut rates),
+                    "lane_occupancy": common::median(&mut occupancy),
+                    "inserted": common::median(&mut inserted),
+                }),
+            );
+        }
         results.insert(name, json!(med));
         medians.push(med);
     }

@@ -123,7 +123,8 @@ pub use camera::ViewCamera;
 pub use error::{RasterError, Result};
 pub use project::{covariance_3d, Projected};
 pub use raster::{
-    DepthMode, ListScratch, Rasterizer, RenderOptions, RenderStats, Simd, TileLists, ViewRender,
+    BlendCounts, DepthMode, ListScratch, Phases, Rasterizer, RenderOptions, RenderStats, Simd,
+    TileLists, ViewRender,
 };
 /// Re-exported so callers can size the thread pool (`rayon::ThreadPoolBuilder`) with the
 /// rayon this crate renders on.

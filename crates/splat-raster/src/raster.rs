@@ -1,6 +1,7 @@
 //! Binning of projected Gaussians into 16x16 tiles and the per-tile front-to-back blend.
 
 use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
 use profuse_formats::{Cameras, Gaussians};
 use rayon::prelude::*;
@@ -93,6 +94,50 @@ pub struct RenderStats {
     pub visible: usize,
     /// (tile, Gaussian) pairs after binning.
     pub tile_pairs: usize,
+    /// Work counts of the blend: zero unless the crate is built with the `counters`
+    /// feature (they cost a few instructions per pixel group).
+    pub counts: BlendCounts,
+}
+
+/// Wall time of the phases of one render, in order ([`ViewRender::phases`],
+/// [`ListScratch::phases`]; kept apart from the deterministic [`RenderStats`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Phases {
+    /// Projecting every Gaussian (culling, EWA covariance, SH colour) and making the sort
+    /// keys.
+    pub project: Duration,
+    /// Sorting the keys by depth and gathering the splats in that order.
+    pub sort: Duration,
+    /// Bucketing the depth-ordered splats by tile row.
+    pub bucket: Duration,
+    /// Everything per tile row, in parallel: bucketing by tile, blending, top-K
+    /// insertion and writing the outputs.
+    pub blend: Duration,
+}
+
+/// What the blend did, summed over the view's tiles (with the `counters` feature).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct BlendCounts {
+    /// Pixel groups evaluated (N adjacent pixels of a tile row against one splat, N = 4 or
+    /// 16 lanes).
+    pub groups: u64,
+    /// Lanes of those groups that were live (inside the splat's span and not stopped).
+    pub live_lanes: u64,
+    /// (pixel, Gaussian) blends that contributed: ω = T·α > 0.
+    pub blends: u64,
+    /// Contributions that entered a top-K list.
+    pub inserted: u64,
+}
+
+impl BlendCounts {
+    fn add(self, o: BlendCounts) -> BlendCounts {
+        BlendCounts {
+            groups: self.groups + o.groups,
+            live_lanes: self.live_lanes + o.live_lanes,
+            blends: self.blends + o.blends,
+            inserted: self.inserted + o.inserted,
+        }
+    }
 }
 
 /// The outputs of one view. Buffers are reused when the same `ViewRender` is rendered
@@ -104,6 +149,7 @@ pub struct ViewRender {
     height: usize,
     opts: RenderOptions,
     stats: RenderStats,
+    phases: Phases,
     color: Vec<f32>,
     depth: Vec<f32>,
     alpha: Vec<f32>,
@@ -133,6 +179,10 @@ impl ViewRender {
     /// Counters.
     pub fn stats(&self) -> RenderStats {
         self.stats
+    }
+    /// Wall time of the phases of the render (not deterministic, unlike the stats).
+    pub fn phases(&self) -> Phases {
+        self.phases
     }
     /// K of the top-K buffers (0 when they are off).
     pub fn k(&self) -> usize {
@@ -254,6 +304,14 @@ impl ViewRender {
 #[derive(Debug, Default)]
 pub struct ListScratch(ViewScratch);
 
+impl ListScratch {
+    /// Wall time of the phases of the last [`Rasterizer::render_tiles`] with this scratch
+    /// (the blend phase includes the consumer's work).
+    pub fn phases(&self) -> Phases {
+        self.0.phases
+    }
+}
+
 /// The top-K lists of one tile, as [`Rasterizer::render_tiles`] hands them over: pixel
 /// (`x0 + col`, `y0 + row`) owns the K entries at `(row * TILE + col) * K` of
 /// [`TileLists::ids`] and [`TileLists::weights`] (descending weight, ties in depth order,
@@ -344,6 +402,8 @@ struct ViewScratch {
     /// rectangle, so that bucketing the row by tile column reads memory in order).
     row_entries: Vec<RowEntry>,
     tiles: Mutex<Vec<TileScratch>>,
+    /// Phase times of the last render with this scratch.
+    phases: Phases,
 }
 
 /// The rasterizer of one Gaussian set: holds the view-independent per-Gaussian data
@@ -469,14 +529,17 @@ impl<'g> Rasterizer<'g> {
         opts.validate()?;
         cam.check(view)?;
         out.resize(view, cam, opts);
-        self.bin(cam, &mut out.scratch);
-        let stats = RenderStats {
-            visible: out.scratch.splats.len(),
-            tile_pairs: 0,
+        let mut phases = self.bin(cam, &mut out.scratch);
+        let visible = out.scratch.splats.len();
+        let t0 = Instant::now();
+        let (tile_pairs, counts) = blend(cam, opts, self.level, out);
+        phases.blend = t0.elapsed();
+        out.stats = RenderStats {
+            visible,
+            tile_pairs,
+            counts,
         };
-        out.stats = stats;
-        let pairs = blend(cam, opts, self.level, out);
-        out.stats.tile_pairs = pairs;
+        out.phases = phases;
         Ok(())
     }
 
@@ -510,7 +573,8 @@ impl<'g> Rasterizer<'g> {
         opts.validate()?;
         cam.check(view)?;
         let s = &mut scratch.0;
-        self.bin(cam, s);
+        let mut phases = self.bin(cam, s);
+        let t0 = Instant::now();
         let (tiles_x, tiles_y) = cam.tiles();
         rows.truncate(tiles_y);
         rows.resize_with(tiles_y, R::default);
@@ -525,7 +589,7 @@ impl<'g> Rasterizer<'g> {
             opts: &opts,
             level: self.level,
         };
-        let tile_pairs = rows
+        let (tile_pairs, counts) = rows
             .par_iter_mut()
             .enumerate()
             .map_init(
@@ -535,10 +599,14 @@ impl<'g> Rasterizer<'g> {
                     consume_row(&ctx, entries, ty, st.get(), state, &consume)
                 },
             )
-            .sum();
+            .reduce(|| (0, BlendCounts::default()), add_rows);
+        phases.blend = t0.elapsed();
+        let visible = s.splats.len();
+        scratch.0.phases = phases;
         Ok(RenderStats {
-            visible: s.splats.len(),
+            visible,
             tile_pairs,
+            counts,
         })
     }
 
@@ -572,7 +640,8 @@ impl<'g> Rasterizer<'g> {
     /// allocation, and the chunking does not depend on the thread count), the survivors
     /// are ordered by sorting 8-byte keys (depth bits, chunk, index) rather than moving the
     /// 64-byte splats around, and are gathered once into depth order.
-    fn bin(&self, cam: &ViewCamera, s: &mut ViewScratch) {
+    fn bin(&self, cam: &ViewCamera, s: &mut ViewScratch) -> Phases {
+        let t0 = Instant::now();
         let campos = cam.center();
         let chunks = self.len().div_ceil(PROJECT_CHUNK);
         s.chunks.resize_with(chunks, Default::default);
@@ -586,6 +655,8 @@ impl<'g> Rasterizer<'g> {
                 keys.clear();
                 keys.extend(out.iter().enumerate().map(|(i, sp)| depth_key(sp, c, i)));
             });
+        let project = t0.elapsed();
+        let t0 = Instant::now();
         s.keys.clear();
         for (_, keys) in &s.chunks {
             s.keys.extend_from_slice(keys);
@@ -598,7 +669,9 @@ impl<'g> Rasterizer<'g> {
             let (c, i) = key_position(key);
             chunks[c].0[i]
         }));
+        let sort = t0.elapsed();
 
+        let t0 = Instant::now();
         let (_, tiles_y) = cam.tiles();
         bucket_by_row(
             &s.splats,
@@ -607,6 +680,12 @@ impl<'g> Rasterizer<'g> {
             &mut s.row_start,
             &mut s.row_entries,
         );
+        Phases {
+            project,
+            sort,
+            bucket: t0.elapsed(),
+            blend: Duration::ZERO,
+        }
     }
 }
 
@@ -697,9 +776,19 @@ fn row_chunks<T>(buf: &mut [T], row_len: usize, rows: usize) -> Vec<Option<&mut 
     }
 }
 
+/// Sums two rows' (tile pair count, blend counts).
+fn add_rows(a: (usize, BlendCounts), b: (usize, BlendCounts)) -> (usize, BlendCounts) {
+    (a.0 + b.0, a.1.add(b.1))
+}
+
 /// Rasterises every tile of the view in parallel over tile rows; returns the number of
-/// (tile, Gaussian) pairs.
-fn blend(cam: &ViewCamera, opts: &RenderOptions, level: Level, out: &mut ViewRender) -> usize {
+/// (tile, Gaussian) pairs and the blend counts.
+fn blend(
+    cam: &ViewCamera,
+    opts: &RenderOptions,
+    level: Level,
+    out: &mut ViewRender,
+) -> (usize, BlendCounts) {
     let (tiles_x, tiles_y) = cam.tiles();
     let w = out.width;
     let k = opts.top_k.unwrap_or(0);
@@ -744,7 +833,7 @@ fn blend(cam: &ViewCamera, opts: &RenderOptions, level: Level, out: &mut ViewRen
                 render_row(&ctx, entries, row, st.get())
             },
         )
-        .sum()
+        .reduce(|| (0, BlendCounts::default()), add_rows)
 }
 
 /// A tile scratch borrowed from the view's pool and given back when dropped.
@@ -858,6 +947,8 @@ struct TileScratch {
     /// One tile's lists in pixel-major form, for [`Rasterizer::render_tiles`].
     tile_ids: Vec<u32>,
     tile_weights: Vec<f32>,
+    /// Blend counts of the current tile row (`counters` feature).
+    counts: BlendCounts,
 }
 
 const PIXEL_LINES: usize = TILE_PIXELS / LINE;
@@ -909,13 +1000,15 @@ struct Ctx<'a> {
     level: Level,
 }
 
-/// Renders the tiles of one tile row; returns its (tile, Gaussian) pair count.
+/// Renders the tiles of one tile row; returns its (tile, Gaussian) pair count and blend
+/// counts.
 fn render_row(
     ctx: &Ctx<'_>,
     entries: &[RowEntry],
     mut row: RowOut<'_>,
     st: &mut TileScratch,
-) -> usize {
+) -> (usize, BlendCounts) {
+    st.counts = BlendCounts::default();
     let tiles_x = ctx.tiles_x;
     let mut start = std::mem::take(&mut st.tile_start);
     let mut list = std::mem::take(&mut st.tile_entries);
@@ -962,7 +1055,7 @@ fn render_row(
     }
     st.tile_start = start;
     st.tile_entries = list;
-    total
+    (total, st.counts)
 }
 
 /// Buckets a tile row's splats (depth-sorted) by tile column, keeping the order: tile tx's
@@ -1005,10 +1098,11 @@ fn consume_row<R, F>(
     st: &mut TileScratch,
     state: &mut R,
     consume: &F,
-) -> usize
+) -> (usize, BlendCounts)
 where
     F: Fn(&TileLists<'_>, &mut R),
 {
+    st.counts = BlendCounts::default();
     let (tiles_x, k, splats) = (ctx.tiles_x, ctx.k, ctx.splats);
     let mut start = std::mem::take(&mut st.tile_start);
     let mut list = std::mem::take(&mut st.tile_entries);
@@ -1055,7 +1149,7 @@ where
     st.tile_entries = list;
     st.tile_ids = ids;
     st.tile_weights = weights;
-    total
+    (total, st.counts)
 }
 
 /// Writes padding (weight 0, [`NO_GAUSSIAN`]) into every list of a `cols` x `rows` tile
@@ -1158,6 +1252,8 @@ struct TileState<'a> {
     lid: &'a mut [f32],
     fill: &'a mut [u16],
     k: usize,
+    #[cfg_attr(not(feature = "counters"), allow(dead_code))]
+    counts: &'a mut BlendCounts,
 }
 
 /// Front-to-back blend of one tile's depth-sorted splats.
@@ -1183,6 +1279,7 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         lid: flat_mut(&mut st.lid),
         fill: &mut st.fill,
         k: st.k,
+        counts: &mut st.counts,
     };
     let row_stopped = &mut st.row_stopped;
     let row_width = (x1 - x0) as u8;
@@ -1304,6 +1401,12 @@ fn blend_span<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         }
         let px = V::splat((x0 + c0) as f32) + V::centres();
         let (stop, w, t) = blend_group::<V>(q, cdy, dy, live, px, at, !CUTOFF, s);
+        #[cfg(feature = "counters")]
+        {
+            s.counts.groups += 1;
+            s.counts.live_lanes += u64::from(V::bits(live).count_ones());
+            s.counts.blends += u64::from(V::bits(w.gt(V::splat(0.0))).count_ones());
+        }
         let mut done = done | stop;
         stops += V::bits(stop).count_ones();
         if TOPK {
@@ -1315,6 +1418,10 @@ fn blend_span<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                 let cand = w.gt(kth);
                 let kth = match s.fill.get_mut(at / n) {
                     Some(fill) if V::bits(cand) != 0 => {
+                        #[cfg(feature = "counters")]
+                        {
+                            s.counts.inserted += u64::from(V::bits(cand).count_ones());
+                        }
                         let kth = insert_group::<V>(lw, lid, k, usize::from(*fill), cand, w, q.id);
                         // One more entry in each candidate lane (or one replaced when full).
                         *fill = (*fill + 1).min(k as u16);

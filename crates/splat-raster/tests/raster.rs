@@ -1291,3 +1291,63 @@ fn equal_weights_keep_depth_order_and_equal_depths_keep_id_order() {
     assert_eq!(ids, &[0, 1]);
     assert!((ws[0] - 0.6).abs() < 1e-6 && (ws[1] - 0.24).abs() < 1e-6);
 }
+
+#[test]
+fn render_stats_time_every_phase() {
+    let (g, cams) = small_scene();
+    let raster = Rasterizer::new(&g).unwrap();
+    let r = raster.render_view(&cams, 0, &all_outputs(4)).unwrap();
+    let p = r.phases();
+    assert!(p.project > std::time::Duration::ZERO, "{p:?}");
+    assert!(p.blend > std::time::Duration::ZERO, "{p:?}");
+    assert!(r.stats().tile_pairs > 0);
+}
+
+/// With the `counters` feature, the blend count of a colour render is the brute-force
+/// renderer's number of contributions (ω > 0) over every pixel, exactly, for every SIMD
+/// width; a K = 256 render inserts every contribution of pixels with at most 256.
+#[cfg(feature = "counters")]
+#[test]
+fn blend_counts_equal_the_brute_force_contributions() {
+    let cams = camera_at(
+        83,
+        61,
+        [70.0, 70.0, 41.5, 30.5],
+        [0.3, -0.2, -1.0],
+        [0.5, 0.1, 4.0],
+    );
+    let g = camera_projection_scene(1, 300, &cams);
+    let r = ref_render(&g, &cams, 0);
+    let want: u64 = r.hits.iter().map(|h| h.len() as u64).sum();
+    assert!(want > 10_000, "{want}");
+    assert!(r.hits.iter().all(|h| h.len() <= 256));
+    for raster in rasterizers(&g) {
+        let lanes = if raster.simd() == splat_raster::Simd::Portable {
+            4
+        } else {
+            16
+        };
+        let color = RenderOptions {
+            top_k: None,
+            ..RenderOptions::default()
+        };
+        let c = raster.render_view(&cams, 0, &color).unwrap().stats().counts;
+        assert_eq!(c.blends, want, "{}", raster.simd().name());
+        assert_eq!(c.inserted, 0);
+        assert!(
+            c.live_lanes >= c.blends && c.groups * lanes >= c.live_lanes,
+            "{c:?}"
+        );
+        let all = raster
+            .render_view(&cams, 0, &all_outputs(256))
+            .unwrap()
+            .stats()
+            .counts;
+        assert_eq!(
+            (all.blends, all.inserted),
+            (want, want),
+            "{}",
+            raster.simd().name()
+        );
+    }
+}
