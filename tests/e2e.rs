@@ -122,22 +122,35 @@ fn inspect_fails_invalid_files_with_exit_code_1_and_the_error_on_stderr() {
     assert_eq!(json(&out)["error"]["code"], "io");
 }
 
+/// Whether python3 can `import modules` (comma-separated). When it cannot, the test is
+/// skipped with a message naming `install`, unless the environment variable `require` is
+/// `1` (`.ci/run` sets it), which makes the absence a failure.
+fn python_has(modules: &str, require: &str, install: &str) -> bool {
+    let probe = Command::new("python3")
+        .args(["-c", &format!("import {modules}")])
+        .output();
+    if probe.map(|o| o.status.success()).unwrap_or(false) {
+        return true;
+    }
+    assert!(
+        std::env::var(require).as_deref() != Ok("1"),
+        "python3 with {modules} is required ({install}); {require}=1"
+    );
+    eprintln!("SKIPPED: python3 with {modules} not found; run `{install}`");
+    false
+}
+
 /// The Python reader reads exactly what Rust wrote and prints the same inspect JSON, and
 /// Rust reads what the Python writers write. Needs `numpy` and `safetensors` for python3;
 /// skipped with a message when they are missing, unless PROFUSE_REQUIRE_PYTHON=1 (set by
 /// `.ci/run`) makes that a failure.
 #[test]
 fn python_reader_agrees_with_rust_on_every_golden_vector() {
-    let probe = Command::new("python3")
-        .args(["-c", "import numpy, safetensors"])
-        .output();
-    let available = probe.map(|o| o.status.success()).unwrap_or(false);
-    if !available {
-        assert!(
-            std::env::var("PROFUSE_REQUIRE_PYTHON").as_deref() != Ok("1"),
-            "python3 with numpy and safetensors is required (pip install ./formats/python)"
-        );
-        eprintln!("SKIPPED: python3 with numpy + safetensors not found; run `pip install ./formats/python`");
+    if !python_has(
+        "numpy, safetensors",
+        "PROFUSE_REQUIRE_PYTHON",
+        "pip install ./formats/python",
+    ) {
         return;
     }
     // The reader's tests, then the writers' (every kind written by Python is read by

@@ -29,15 +29,11 @@ fn fox_semantic_quick_selects_the_fox_in_held_out_views() {
     ) else {
         return;
     };
-    let probe = Command::new("python3")
-        .args(["-c", "import onnxruntime"])
-        .output();
-    if !probe.map(|o| o.status.success()).unwrap_or(false) {
-        assert!(
-            std::env::var("PROFUSE_REQUIRE_PYTHON").as_deref() != Ok("1"),
-            "python3 with onnxruntime is required (pip install -r crates/prep/python/requirements.txt)"
-        );
-        eprintln!("SKIPPED: python3 with onnxruntime not found");
+    if !super::python_has(
+        "onnxruntime",
+        "PROFUSE_REQUIRE_PYTHON",
+        "pip install -r crates/prep/python/requirements.txt",
+    ) {
         return;
     }
     let dir = tempfile::tempdir().unwrap();

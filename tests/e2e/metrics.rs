@@ -561,15 +561,11 @@ fn bench_reports_every_metric() {
 /// they are missing, unless PROFUSE_REQUIRE_PYTHON=1 (set by `.ci/run`).
 #[test]
 fn fillpoly_agrees_with_opencv() {
-    let probe = std::process::Command::new("python3")
-        .args(["-c", "import numpy, cv2"])
-        .output();
-    if !probe.map(|o| o.status.success()).unwrap_or(false) {
-        assert!(
-            std::env::var("PROFUSE_REQUIRE_PYTHON").as_deref() != Ok("1"),
-            "python3 with numpy and cv2 is required (pip install -r crates/metrics/python/requirements.txt)"
-        );
-        eprintln!("SKIPPED: python3 with numpy + cv2 not found; run `pip install -r crates/metrics/python/requirements.txt`");
+    if !super::python_has(
+        "numpy, cv2",
+        "PROFUSE_REQUIRE_PYTHON",
+        "pip install -r crates/metrics/python/requirements.txt",
+    ) {
         return;
     }
     let out = std::process::Command::new("python3")

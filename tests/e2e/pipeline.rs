@@ -339,15 +339,11 @@ fn a_run_split_into_warp_shards_equals_one_run_byte_for_byte() {
 /// PROFUSE_REQUIRE_PYTHON=1 (set by `.ci/run`, which installs Ray) makes that a failure.
 #[test]
 fn ray_driver_is_byte_identical_to_profuse_run() {
-    let probe = Command::new("python3")
-        .args(["-c", "import ray.cluster_utils"])
-        .output();
-    if !probe.map(|o| o.status.success()).unwrap_or(false) {
-        assert!(
-            std::env::var("PROFUSE_REQUIRE_PYTHON").as_deref() != Ok("1"),
-            "python3 with Ray is required (pip install ./python/profuse_ray)"
-        );
-        eprintln!("SKIPPED: python3 with Ray not found; run `pip install ./python/profuse_ray`");
+    if !super::python_has(
+        "ray.cluster_utils",
+        "PROFUSE_REQUIRE_PYTHON",
+        "pip install ./python/profuse_ray",
+    ) {
         return;
     }
     let out = Command::new("python3")

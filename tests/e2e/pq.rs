@@ -284,16 +284,11 @@ fn pq_bench_reports_the_measured_keys() {
 /// when they are missing, unless PROFUSE_REQUIRE_FAISS=1.
 #[test]
 fn bench_vs_faiss_quick_reports_every_ratio_and_recall() {
-    let probe = std::process::Command::new("python3")
-        .args(["-c", "import numpy, safetensors, faiss"])
-        .output();
-    if !probe.map(|o| o.status.success()).unwrap_or(false) {
-        assert!(
-            std::env::var("PROFUSE_REQUIRE_FAISS").as_deref() != Ok("1"),
-            "python3 with numpy, safetensors and faiss is required \
-             (pip install -r crates/pq/python/requirements.txt)"
-        );
-        eprintln!("SKIPPED: python3 with numpy + safetensors + faiss not found");
+    if !super::python_has(
+        "numpy, safetensors, faiss",
+        "PROFUSE_REQUIRE_FAISS",
+        "pip install -r crates/pq/python/requirements.txt",
+    ) {
         return;
     }
     let out = std::process::Command::new("python3")
