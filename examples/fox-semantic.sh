@@ -120,19 +120,19 @@ timed query "$bin/query" --quiet run --gaussians "$gaussians" --cameras "$cams" 
     --export-ply "$OUT/selected.ply" >"$OUT/query.json"
 t_end=$(date +%s.%N)
 
-python3 - "$OUT" "$(python3 -c "print(round($t_end - $t_start, 2))")" "${CLICK[*]}" \
+PYTHONPATH="$here/formats/python${PYTHONPATH:+:$PYTHONPATH}" \
+    python3 - "$OUT" "$(python3 -c "print(round($t_end - $t_start, 2))")" "${CLICK[*]}" \
     "${HELDOUT[*]}" "$views_csv" "$(IFS=,; echo "${stage_names[*]}")" \
     "$(IFS=,; echo "${stage_secs[*]}")" <<'EOF'
-import json, pathlib, shutil, struct, sys
+import json, pathlib, shutil, sys
+import profuse_formats as pf
 out = pathlib.Path(sys.argv[1])
 seconds = float(sys.argv[2])
 click = [int(x) for x in sys.argv[3].split()]
 held = [int(x) for x in sys.argv[4].split()]
 mask_views = [int(x) for x in sys.argv[5].split(",")]
 stages = dict(zip(sys.argv[6].split(","), (float(x) for x in sys.argv[7].split(","))))
-with open(out / "geom/scene/cameras.safetensors", "rb") as f:
-    n = struct.unpack("<Q", f.read(8))[0]
-    names = json.loads(json.loads(f.read(n))["__metadata__"]["image_names"])
+names = pf.read_cameras(out / "geom/scene/cameras.safetensors").image_names
 masks = json.loads((out / "masks.json").read_text())
 props = json.loads((out / "proposals.json").read_text())
 query = json.loads((out / "query.json").read_text())

@@ -47,12 +47,13 @@ mkdir -p "$OUT"
 "$bin/scene-io" --quiet undistort --cameras "$OUT/cameras_distorted.safetensors" \
     --scene-dir "$FOX" --out-dir "$OUT/scene" >/dev/null
 
-# Image stems of the held-out views, from the imported cameras.
-stems=$(python3 - "$OUT/scene/cameras.safetensors" "${HELDOUT[@]}" <<'EOF'
-import json, struct, sys, pathlib
-with open(sys.argv[1], "rb") as f:
-    n = struct.unpack("<Q", f.read(8))[0]
-    names = json.loads(json.loads(f.read(n))["__metadata__"]["image_names"])
+# Image stems of the held-out views, from the imported cameras (read with the project's
+# Python reader, formats/python).
+stems=$(PYTHONPATH="$here/formats/python${PYTHONPATH:+:$PYTHONPATH}" \
+    python3 - "$OUT/scene/cameras.safetensors" "${HELDOUT[@]}" <<'EOF'
+import pathlib, sys
+import profuse_formats as pf
+names = pf.read_cameras(sys.argv[1]).image_names
 print(" ".join(pathlib.Path(names[int(v)]).stem for v in sys.argv[2:]))
 EOF
 )
