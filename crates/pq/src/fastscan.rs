@@ -233,14 +233,15 @@ impl FastScan {
         stats.margin = pool.margin;
         // Every candidate whose ADC cosine can still reach the top k (at least k of them).
         let reach: Vec<(u32, f32)> = pool
-            .ranked()
-            .into_iter()
+            .scored()
+            .iter()
+            .copied()
             .filter(|&(_, c)| c >= bar)
             .collect();
         let best = if reach.len() >= k {
             reach
         } else {
-            top_n(pool.ranked(), k)
+            top_n(pool.scored().to_vec(), k)
         };
         stats.reranked = best.len();
         let reranked: Vec<(u32, f32)> = best
@@ -527,8 +528,9 @@ impl Candidates {
         })
     }
 
-    fn ranked(&self) -> Vec<(u32, f32)> {
-        self.scored.clone()
+    /// Every candidate so far: id and ADC cosine.
+    fn scored(&self) -> &[(u32, f32)] {
+        &self.scored
     }
 }
 
