@@ -181,8 +181,8 @@ pub fn run(
         raster.render_view_into(&cams, 0, &opts, &mut out)?;
         let (mut times, mut cpus) = (Vec::new(), Vec::new());
         let mut phases: [Vec<f64>; 4] = Default::default();
-        let (mut blends, mut rates, mut occupancy, mut inserted) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let (mut groups, mut blends, mut rates, mut occupancy, mut inserted) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
         progress.start(&name, cams.len() as u64);
         for v in 0..cams.len() {
             // The fastest of `repeat` renders of the view: other load on the machine only
@@ -211,6 +211,7 @@ pub fn run(
             }
             let c = best_stats.counts;
             if c.groups > 0 {
+                groups.push(c.groups as f64);
                 blends.push(c.blends as f64);
                 rates.push(c.blends as f64 / best_cpu);
                 occupancy.push(c.live_lanes as f64 / (c.groups as f64 * lanes(&raster)));
@@ -242,6 +243,7 @@ pub fn run(
             results.insert(
                 name.replace("_s", "_counts"),
                 json!({
+                    "groups": common::median(&mut groups),
                     "blends": common::median(&mut blends),
                     "blends_per_cpu_s": common::median(&mut rates),
                     "lane_occupancy": common::median(&mut occupancy),

@@ -904,18 +904,19 @@ fn flat_mut(v: &mut [Line]) -> &mut [f32] {
     bytemuck::cast_slice_mut(v)
 }
 
-/// Scratch of one worker, reused across tiles and views: the per-pixel blend state of one
-/// tile and its top-K lists (structure of arrays in SIMD groups of N pixels: 4 with the
-/// portable lanes, a whole 16-pixel tile row with AVX-512), and the row-to-tile bucketing
-/// buffers.
+/// Scratch of one worker, reused across tiles and views: the per-pixel results of one tile
+/// and its top-K lists (structure of arrays in SIMD groups of N pixels: 4 with the
+/// portable lanes, a whole 16-pixel tile row with AVX-512), the per-unit splat lists, and
+/// the row-to-tile bucketing buffers.
 ///
 /// The per-pixel arrays are row-major over the tile's pixels. The lists are rank-major per
 /// group (`lw[(group * K + r) * N + lane]` holds rank r of the group's pixel `lane`), so
 /// one insertion serves every lane of a group that has a candidate with SIMD compares and
 /// blends, without per-lane branches; they start as padding (weight 0, [`NO_GAUSSIAN`]),
 /// so a list that is not full needs no per-lane count, and the K-th rank is the bar a
-/// newcomer must beat (one count per group, the longest list, only spares insertions the
-/// walk through padding). They reach the output once per tile.
+/// newcomer must beat (one count per group, the longest list, held while the group is
+/// blended, only spares insertions the walk through padding). They reach the output once
+/// per tile.
 #[derive(Debug, Default)]
 struct TileScratch {
     /// Transmittance.
@@ -928,20 +929,15 @@ struct TileScratch {
     depth: PixelLines,
     /// Σ ω.
     wsum: PixelLines,
-    /// All bits set once the pixel has stopped (T would fall below 1e-4, or its list is
-    /// final).
-    done: PixelLines,
     /// Top-K weights, each list sorted by descending weight.
     lw: Vec<Line>,
     /// Top-K Gaussian ids beside `lw`, as f32 bit patterns (only ever moved by blends).
     lid: Vec<Line>,
     /// K of the lists.
     k: usize,
-    /// Per group: the ranks from this one on hold padding in every lane (the longest of
-    /// the group's lists), so an insertion need not shift padding into padding.
-    fill: Vec<u16>,
-    /// Per pixel row of the tile: how many of its pixels have stopped.
-    row_stopped: [u8; TILE],
+    /// Per blend unit (N adjacent pixels of a tile row): the splats of the tile that reach
+    /// it, in depth order (see `blend_tile`).
+    units: Vec<Vec<UnitEntry>>,
     tile_start: Vec<usize>,
     tile_entries: Vec<u32>,
     /// One tile's lists in pixel-major form, for [`Rasterizer::render_tiles`].
@@ -962,29 +958,6 @@ impl TileScratch {
         self.lid.resize(PIXEL_LINES * k, NO_ID_LINE);
         self.tile_start.resize(tiles_x + 1, 0);
     }
-
-    fn clear_tile(&mut self, topk: bool, shade: bool) {
-        self.t.fill(Line([1.0; LINE]));
-        self.done.fill(ZERO_LINE);
-        self.fill.clear();
-        self.fill.resize(TILE_PIXELS / 4, 0);
-        self.row_stopped = [0; TILE];
-        if shade {
-            for v in [
-                &mut self.r,
-                &mut self.g,
-                &mut self.b,
-                &mut self.depth,
-                &mut self.wsum,
-            ] {
-                v.fill(ZERO_LINE);
-            }
-        }
-        if topk {
-            self.lw.fill(ZERO_LINE);
-            self.lid.fill(NO_ID_LINE);
-        }
-    }
 }
 
 struct Ctx<'a> {
@@ -994,7 +967,7 @@ struct Ctx<'a> {
     tiles_x: usize,
     k: usize,
     /// Only the top-K lists are wanted (no colour, depth, alpha or T, as registration
-    /// renders): a pixel then stops as soon as its list is final (see `blend_span`).
+    /// renders): a pixel then stops as soon as its list is final (see `blend_unit`).
     lists_only: bool,
     opts: &'a RenderOptions,
     level: Level,
@@ -1239,24 +1212,25 @@ fn blend_tile_avx512<const TOPK: bool, const CUTOFF: bool>(
     blend_tile::<F32x16, TOPK, CUTOFF>(splats, list, rect, st);
 }
 
-/// The flat views of one tile's scratch that the blend works on.
-struct TileState<'a> {
-    t: &'a mut [f32; TILE_PIXELS],
-    r: &'a mut [f32; TILE_PIXELS],
-    g: &'a mut [f32; TILE_PIXELS],
-    b: &'a mut [f32; TILE_PIXELS],
-    depth: &'a mut [f32; TILE_PIXELS],
-    wsum: &'a mut [f32; TILE_PIXELS],
-    done: &'a mut [f32; TILE_PIXELS],
-    lw: &'a mut [f32],
-    lid: &'a mut [f32],
-    fill: &'a mut [u16],
-    k: usize,
-    #[cfg_attr(not(feature = "counters"), allow(dead_code))]
-    counts: &'a mut BlendCounts,
+/// One entry of a blend unit's list: a splat and the unit's lanes inside its footprint
+/// (the columns of its rectangle, or of its row span where spans are solved; lane l in
+/// bit l).
+#[derive(Debug, Clone, Copy)]
+struct UnitEntry {
+    splat: u32,
+    lanes: u32,
 }
 
 /// Front-to-back blend of one tile's depth-sorted splats.
+///
+/// The tile's pixels are cut into units of N adjacent pixels of one row (a whole tile row
+/// with 16 lanes). First every splat is appended to the list of each unit its footprint
+/// reaches, in depth order; then each unit walks its own list with its whole state
+/// (transmittance, colour, depth and weight sums, stopped lanes, the K-th weight) in
+/// registers, and stops as soon as every pixel of it has stopped. Walking splats per unit
+/// rather than units per splat keeps that state out of memory between blends, so the only
+/// chain from one splat to the next is T's few operations and the exponentials of later
+/// splats overlap the current one.
 #[inline(always)]
 fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
@@ -1264,30 +1238,62 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     [x0, x1, y0, y1]: [usize; 4],
     st: &mut TileScratch,
 ) {
-    // Lists-only renders need no colour, depth or weight sums.
-    let shade = !CUTOFF;
-    st.clear_tile(TOPK, shade);
-    let mut s = TileState {
+    let units_per_row = TILE / V::N;
+    st.units.resize_with(TILE_PIXELS / V::N, Vec::new);
+    let units = &mut st.units[..TILE_PIXELS / V::N];
+    for unit in units.iter_mut() {
+        unit.clear();
+    }
+    distribute::<V>(splats, list, [x0, x1, y0, y1], units_per_row, units);
+    let k = st.k;
+    let mut out = UnitOut {
         t: pixels_mut(&mut st.t),
         r: pixels_mut(&mut st.r),
         g: pixels_mut(&mut st.g),
         b: pixels_mut(&mut st.b),
         depth: pixels_mut(&mut st.depth),
         wsum: pixels_mut(&mut st.wsum),
-        done: pixels_mut(&mut st.done),
         lw: flat_mut(&mut st.lw),
         lid: flat_mut(&mut st.lid),
-        fill: &mut st.fill,
-        k: st.k,
+        k,
         counts: &mut st.counts,
     };
-    let row_stopped = &mut st.row_stopped;
-    let row_width = (x1 - x0) as u8;
-    let live = ((x1 - x0) * (y1 - y0)) as u32;
-    let mut stopped = 0u32;
+    for row in 0..y1 - y0 {
+        for gi in 0..units_per_row {
+            let c0 = gi * V::N;
+            if x0 + c0 >= x1 {
+                break;
+            }
+            // Lanes inside the image (the right-hand tiles may be narrower).
+            let valid = V::span(0, (x1 - x0 - 1 - c0).min(V::N - 1));
+            blend_unit::<V, TOPK, CUTOFF>(
+                splats,
+                &units[row * units_per_row + gi],
+                [x0 + c0, y0 + row],
+                valid,
+                row * TILE + c0,
+                &mut out,
+            );
+        }
+    }
+}
+
+/// Appends each splat of the tile's list to the lists of the units (`units_per_row` per
+/// pixel row) its footprint reaches: the rows of its rectangle, and in each row the
+/// columns of its rectangle or, for groups narrower than a tile row where the spans can be
+/// trusted, of the row's span of the α >= 1/255 ellipse.
+#[inline(always)]
+fn distribute<V: Lanes>(
+    splats: &[Splat],
+    list: &[u32],
+    [x0, x1, y0, y1]: [usize; 4],
+    units_per_row: usize,
+    units: &mut [Vec<UnitEntry>],
+) {
+    let n = V::N;
     for (i, &e) in list.iter().enumerate() {
         // The list's splats are scattered over the view's (depth order, not screen order):
-        // ask for one a few entries ahead while this one is blended.
+        // ask for one a few entries ahead while this one is distributed.
         if let Some(ahead) = list
             .get(i + PREFETCH_AHEAD)
             .and_then(|&a| splats.get(a as usize))
@@ -1303,146 +1309,205 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         if cx0 > cx1 || cy0 > cy1 {
             continue;
         }
-        let q = Lane::<V>::new(sp);
-        for py in cy0..cy1 + 1 {
-            if row_stopped[py - y0] == row_width {
-                continue;
+        let mut push_columns = |row: usize, lo: usize, hi: usize| {
+            // lo..=hi are tile-local columns.
+            for gi in lo / n..hi / n + 1 {
+                let c0 = gi * n;
+                let lanes = V::bits(V::span(lo.max(c0) - c0, hi.min(c0 + n - 1) - c0));
+                if let Some(unit) = units.get_mut(row * units_per_row + gi) {
+                    unit.push(UnitEntry { splat: e, lanes });
+                }
             }
-            let dy = sp.y - (py as f32 + 0.5);
-            // With a group per tile row, narrowing the row to its span saves no group, and
-            // the pixels outside it fail the alpha test anyway (the span is a superset of
-            // the pixels with alpha >= 1/255): solve spans only for narrower groups.
-            let (lo, hi) = if V::N < TILE && sp.inv_a > 0.0 {
-                // Pixels of this row with ½ dᵀ C d <= tau (tau has a margin, see `Splat`):
-                // solve the quadratic in dx, widen by SPAN_SLACK for rounding.
-                let disc = sp.two_a_tau - sp.det * dy * dy;
-                if disc.is_nan() || disc < 0.0 {
-                    continue;
-                }
-                let half = disc.sqrt() * sp.inv_a;
-                let mid = sp.x - 0.5 + sp.b * dy * sp.inv_a;
-                let (lo_f, hi_f) = (mid - half - SPAN_SLACK, mid + half + SPAN_SLACK);
-                // ceil and floor without libm calls (the bounds are within [cx0, cx1] here,
-                // so the casts are exact truncations of small non-negative values).
-                if hi_f < cx0 as f32 || lo_f > cx1 as f32 {
-                    continue;
-                }
-                let lo = if lo_f > cx0 as f32 {
-                    let t = lo_f as i32;
-                    t + i32::from((t as f32) < lo_f)
-                } else {
-                    cx0 as i32
-                };
-                let hi = (hi_f as i32).min(cx1 as i32);
-                if hi < lo {
-                    continue;
-                }
-                (lo as usize, hi as usize)
-            } else {
-                (cx0, cx1)
-            };
-            let (lo, hi) = (lo - x0, hi - x0);
-            let row = py - y0;
-            let stops =
-                blend_span::<V, TOPK, CUTOFF>(&q, sp.c * dy * dy, dy, x0, row, lo, hi, &mut s);
-            // At most 16 per row: no overflow.
-            row_stopped[row] += stops as u8;
-            stopped += stops;
+        };
+        // With a group per tile row, narrowing a row to its span saves no group, and the
+        // pixels outside it fail the alpha test anyway (the span is a superset of the
+        // pixels with alpha >= 1/255): solve spans only for narrower groups.
+        if n == TILE || sp.inv_a <= 0.0 {
+            for py in cy0..cy1 + 1 {
+                push_columns(py - y0, cx0 - x0, cx1 - x0);
+            }
+            continue;
         }
-        if stopped == live {
-            break;
+        for py in cy0..cy1 + 1 {
+            if let Some((lo, hi)) = row_span(sp, py, cx0, cx1) {
+                push_columns(py - y0, lo - x0, hi - x0);
+            }
         }
     }
 }
 
-/// How many list entries ahead [`blend_tile`] prefetches a splat.
+/// The columns of image row `py` within `cx0..=cx1` where `sp` may reach α >= 1/255:
+/// the pixels with ½ dᵀ C d <= tau (tau has a margin, see `Splat`), from the quadratic in
+/// dx, widened by SPAN_SLACK for rounding; `None` when there are none.
+#[inline(always)]
+fn row_span(sp: &Splat, py: usize, cx0: usize, cx1: usize) -> Option<(usize, usize)> {
+    let dy = sp.y - (py as f32 + 0.5);
+    let disc = sp.two_a_tau - sp.det * dy * dy;
+    if disc.is_nan() || disc < 0.0 {
+        return None;
+    }
+    let half = disc.sqrt() * sp.inv_a;
+    let mid = sp.x - 0.5 + sp.b * dy * sp.inv_a;
+    let (lo_f, hi_f) = (mid - half - SPAN_SLACK, mid + half + SPAN_SLACK);
+    // ceil and floor without libm calls (the bounds are within [cx0, cx1] here, so the
+    // casts are exact truncations of small non-negative values).
+    if hi_f < cx0 as f32 || lo_f > cx1 as f32 {
+        return None;
+    }
+    let lo = if lo_f > cx0 as f32 {
+        let t = lo_f as i32;
+        t + i32::from((t as f32) < lo_f)
+    } else {
+        cx0 as i32
+    };
+    let hi = (hi_f as i32).min(cx1 as i32);
+    if hi < lo {
+        return None;
+    }
+    Some((lo as usize, hi as usize))
+}
+
+/// The power below which no Gaussian reaches α >= 1/255: exp(−40) = 4.2e-18, far below
+/// 1/255 even at opacity 1 (opacities are sigmoids, <= 1).
+const POWER_FLOOR: f32 = -40.0;
+
+/// How many list entries ahead [`distribute`] prefetches a splat.
 const PREFETCH_AHEAD: usize = 6;
 
 /// Extra width, in pixels, of each per-row span beyond the solved ellipse bounds: far above
 /// the f32 rounding of those bounds (the exponent margin of `Splat::two_a_tau` adds more).
 const SPAN_SLACK: f32 = 1.0 / 64.0;
 
-/// One splat over the pixels `lo..=hi` (tile-local columns) of tile row `row`, whose first
-/// column is image column `x0`: INRIA's per-pixel step on whole groups of N pixels (lanes
-/// outside `lo..=hi` masked off, groups whose pixels have all stopped skipped). With `TOPK`,
-/// pixels whose weight beats their list's K-th enter their top-K list. Returns how many
-/// pixels stopped.
+/// Where a unit's results go: the tile's per-pixel arrays (row-major) and its top-K lists.
+struct UnitOut<'a> {
+    t: &'a mut [f32; TILE_PIXELS],
+    r: &'a mut [f32; TILE_PIXELS],
+    g: &'a mut [f32; TILE_PIXELS],
+    b: &'a mut [f32; TILE_PIXELS],
+    depth: &'a mut [f32; TILE_PIXELS],
+    wsum: &'a mut [f32; TILE_PIXELS],
+    lw: &'a mut [f32],
+    lid: &'a mut [f32],
+    k: usize,
+    #[cfg_attr(not(feature = "counters"), allow(dead_code))]
+    counts: &'a mut BlendCounts,
+}
+
+/// The running state of one unit's N pixels.
+struct UnitState<V: Lanes> {
+    t: V,
+    r: V,
+    g: V,
+    b: V,
+    depth: V,
+    wsum: V,
+    /// Lanes that have stopped (T would fall below 1e-4, or the list is final) or lie
+    /// outside the image.
+    done: V::Mask,
+}
+
+/// One unit (the N pixels from image column `px0` of image row `py`, at tile pixel `at`)
+/// over its splat list, front to back: INRIA's per-pixel step on all lanes at once (lanes
+/// outside an entry's footprint masked off). With `TOPK`, pixels whose weight beats their
+/// list's K-th enter their top-K list; with `CUTOFF` (lists only) a pixel also stops once
+/// its list is final. Writes T, the sums and the lists into `out`.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn blend_span<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
-    q: &Lane<V>,
-    cdy: f32,
-    dy: f32,
-    x0: usize,
-    row: usize,
-    lo: usize,
-    hi: usize,
-    s: &mut TileState<'_>,
-) -> u32 {
+fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
+    splats: &[Splat],
+    entries: &[UnitEntry],
+    [px0, py]: [usize; 2],
+    valid: V::Mask,
+    at: usize,
+    out: &mut UnitOut<'_>,
+) {
     let n = V::N;
-    // c·dy·dy rounds exactly as inside the scalar power expression.
-    let (cdy, dy) = (V::splat(cdy), V::splat(dy));
-    let mut stops = 0;
-    let k = s.k;
-    for gi in lo / n..hi / n + 1 {
-        // First pixel of the group in the tile's row-major pixel order.
-        let at = row * TILE + gi * n;
-        if at + n > TILE_PIXELS {
-            // Never: the check lets the compiler drop every range check of the group below.
-            continue;
-        }
-        let done = V::load_mask(&s.done[at..at + n]);
-        let c0 = gi * n;
-        let valid = V::span(lo.max(c0) - c0, hi.min(c0 + n - 1) - c0);
-        let live = valid & !done;
+    let zero = V::splat(0.0);
+    let mut s = UnitState::<V> {
+        t: V::splat(1.0),
+        r: zero,
+        g: zero,
+        b: zero,
+        depth: zero,
+        wsum: zero,
+        done: !valid,
+    };
+    let all = V::bits(V::span(0, n - 1));
+    let k = out.k;
+    let lists = at * k..(at + n) * k;
+    let (Some(lw), Some(lid)) = (out.lw.get_mut(lists.clone()), out.lid.get_mut(lists)) else {
+        return;
+    };
+    if TOPK {
+        lw.fill(0.0);
+        lid.fill(f32::from_bits(NO_GAUSSIAN));
+    }
+    // The K-th weights of the lists (0 while not full), and the ranks from `fill` on that
+    // hold padding in every lane (the longest list's length).
+    let mut kth = zero;
+    let mut fill = 0usize;
+    let px = V::splat(px0 as f32) + V::centres();
+    let pyc = py as f32 + 0.5;
+    for e in entries {
+        let live = V::from_bits(e.lanes) & !s.done;
         if V::bits(live) == 0 {
-            // Every pixel of the group has stopped or lies outside the span.
             continue;
         }
-        let px = V::splat((x0 + c0) as f32) + V::centres();
-        let (stop, w, t) = blend_group::<V>(q, cdy, dy, live, px, at, !CUTOFF, s);
+        let Some(sp) = splats.get(e.splat as usize) else {
+            continue;
+        };
+        let dy = sp.y - pyc;
+        // c·dy·dy rounds exactly as inside the scalar power expression.
+        let (stop, w) = blend_group::<V>(
+            sp,
+            V::splat(sp.c * dy * dy),
+            V::splat(dy),
+            live,
+            px,
+            !CUTOFF,
+            &mut s,
+        );
         #[cfg(feature = "counters")]
         {
-            s.counts.groups += 1;
-            s.counts.live_lanes += u64::from(V::bits(live).count_ones());
-            s.counts.blends += u64::from(V::bits(w.gt(V::splat(0.0))).count_ones());
+            out.counts.groups += 1;
+            out.counts.live_lanes += u64::from(V::bits(live).count_ones());
+            out.counts.blends += u64::from(V::bits(w.gt(zero)).count_ones());
         }
-        let mut done = done | stop;
-        stops += V::bits(stop).count_ones();
+        s.done = s.done | stop;
         if TOPK {
-            let list = at * k..(at + n) * k;
-            if let (Some(lw), Some(lid)) = (s.lw.get_mut(list.clone()), s.lid.get_mut(list)) {
-                // Lanes whose weight beats the pixel's K-th (0 while the list is not full);
-                // usually few, often none.
-                let kth = V::load(&lw[(k - 1) * n..]);
-                let cand = w.gt(kth);
-                let kth = match s.fill.get_mut(at / n) {
-                    Some(fill) if V::bits(cand) != 0 => {
-                        #[cfg(feature = "counters")]
-                        {
-                            s.counts.inserted += u64::from(V::bits(cand).count_ones());
-                        }
-                        let kth = insert_group::<V>(lw, lid, k, usize::from(*fill), cand, w, q.id);
-                        // One more entry in each candidate lane (or one replaced when full).
-                        *fill = (*fill + 1).min(k as u16);
-                        kth
-                    }
-                    _ => kth,
-                };
-                if CUTOFF {
-                    // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so
-                    // once T <= the K-th weight of a full list (> 0) nothing can enter: the
-                    // pixel's list is final and it stops here.
-                    let full = kth.gt(V::splat(0.0));
-                    let settled = live & full & t.le(kth) & !done;
-                    done = done | settled;
-                    stops += V::bits(settled).count_ones();
+            // Lanes whose weight beats the pixel's K-th (0 while the list is not full);
+            // usually few, often none.
+            let cand = w.gt(kth);
+            if V::bits(cand) != 0 {
+                #[cfg(feature = "counters")]
+                {
+                    out.counts.inserted += u64::from(V::bits(cand).count_ones());
                 }
+                let id = V::splat(f32::from_bits(sp.id));
+                kth = insert_group::<V>(lw, lid, k, fill, cand, w, id);
+                // One more entry in each candidate lane (or one replaced when full).
+                fill = (fill + 1).min(k);
+            }
+            if CUTOFF {
+                // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so
+                // once T <= the K-th weight of a full list (> 0) nothing can enter: the
+                // pixel's list is final and it stops here.
+                let full = kth.gt(zero);
+                s.done = s.done | (full & s.t.le(kth));
             }
         }
-        V::store_mask(done, &mut s.done[at..at + n]);
+        if V::bits(s.done) == all {
+            break;
+        }
     }
-    stops
+    let range = at..at + n;
+    s.t.store(&mut out.t[range.clone()]);
+    if !CUTOFF {
+        s.r.store(&mut out.r[range.clone()]);
+        s.g.store(&mut out.g[range.clone()]);
+        s.b.store(&mut out.b[range.clone()]);
+        s.depth.store(&mut out.depth[range.clone()]);
+        s.wsum.store(&mut out.wsum[range]);
+    }
 }
 
 /// Inserts (w, id) into the sorted lists of the lanes in `cand` of one group (`lw[r * N..]`,
@@ -1492,76 +1557,46 @@ fn insert_group<V: Lanes>(
     V::load(&lw[(k - 1) * n..])
 }
 
-/// Per-splat constants of [`blend_group`], broadcast to all lanes.
-struct Lane<V> {
-    sx: V,
-    a: V,
-    b: V,
-    o: V,
-    color: [V; 3],
-    z: V,
-    id: V,
-}
-
-impl<V: Lanes> Lane<V> {
-    #[inline(always)]
-    fn new(s: &Splat) -> Self {
-        Lane {
-            sx: V::splat(s.x),
-            a: V::splat(s.a),
-            b: V::splat(s.b),
-            o: V::splat(s.opacity),
-            color: s.color.map(V::splat),
-            z: V::splat(s.depth),
-            id: V::splat(f32::from_bits(s.id)),
-        }
-    }
-}
-
-/// INRIA's per-pixel step for the N adjacent pixels with centres `px` whose state starts at
-/// `at` (pixels outside `live` are left alone): power = −½(a dx² + c dy²) − b dx dy,
+/// INRIA's per-pixel step of splat `sp` for the N adjacent pixels with centres `px` (pixels
+/// outside `live` are left alone): power = −½(a dx² + c dy²) − b dx dy,
 /// α = min(0.99, o·exp(power)), skip power > 0 or α < 1/255, stop if T(1 − α) < 1e-4, else
 /// ω = T·α, T becomes T(1 − α) and (with `shade`) the sums grow by ω. Every lane performs
 /// the same IEEE operations in the same order as the scalar reference, and masked lanes add
 /// ω = 0 (the sums are finite and >= 0, so x + 0 = x bit for bit): the result equals a
-/// scalar per-pixel loop exactly. Returns the lanes that stopped, the weights (0 outside
-/// the contributing lanes) and the new T.
+/// scalar per-pixel loop exactly. Returns the lanes that stopped and the weights (0 outside
+/// the contributing lanes).
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn blend_group<V: Lanes>(
-    q: &Lane<V>,
+    sp: &Splat,
     cdy: V,
     dy: V,
     live: V::Mask,
     px: V,
-    at: usize,
     shade: bool,
-    s: &mut TileState<'_>,
-) -> (V::Mask, V, V) {
-    let dx = q.sx - px;
-    let power = V::splat(-0.5) * (q.a * dx * dx + cdy) - q.b * dx * dy;
-    let alpha = (q.o * power.exp()).min(V::splat(ALPHA_MAX));
+    s: &mut UnitState<V>,
+) -> (V::Mask, V) {
+    let dx = V::splat(sp.x) - px;
+    let power = V::splat(-0.5) * (V::splat(sp.a) * dx * dx + cdy) - V::splat(sp.b) * dx * dy;
+    // Below POWER_FLOOR every α fails the 1/255 test (opacity <= 1), so raising power to
+    // it changes no contribution; it keeps o·exp(power) out of the subnormal range, whose
+    // products cost a microcode assist each on x86 (the far corners of a thin splat's
+    // rectangle reach powers of −1000 and below).
+    let e = power.max(V::splat(POWER_FLOOR)).exp();
+    let alpha = (V::splat(sp.opacity) * e).min(V::splat(ALPHA_MAX));
     let ok = live & power.le(V::splat(0.0)) & alpha.ge(V::splat(ALPHA_MIN));
-    let n = V::N;
-    let tj = V::load(&s.t[at..at + n]);
-    let test_t = tj * (V::splat(1.0) - alpha);
+    let test_t = s.t * (V::splat(1.0) - alpha);
     let low = test_t.lt(V::splat(T_MIN));
     let contrib = ok & !low;
-    let w = V::select(contrib, alpha * tj, V::splat(0.0));
+    let w = V::select(contrib, alpha * s.t, V::splat(0.0));
     if shade {
-        let add = |buf: &mut [f32; TILE_PIXELS], v: V| {
-            let p = &mut buf[at..at + n];
-            (V::load(p) + v).store(p);
-        };
-        add(s.r, q.color[0] * w);
-        add(s.g, q.color[1] * w);
-        add(s.b, q.color[2] * w);
-        add(s.depth, q.z * w);
-        add(s.wsum, w);
+        s.r = s.r + V::splat(sp.color[0]) * w;
+        s.g = s.g + V::splat(sp.color[1]) * w;
+        s.b = s.b + V::splat(sp.color[2]) * w;
+        s.depth = s.depth + V::splat(sp.depth) * w;
+        s.wsum = s.wsum + w;
     }
-    let t = V::select(contrib, test_t, tj);
-    t.store(&mut s.t[at..at + n]);
-    (ok & low, w, t)
+    s.t = V::select(contrib, test_t, s.t);
+    (ok & low, w)
 }
 
 /// Copies a finished tile into the tile row's output slices.

@@ -47,9 +47,8 @@ pub(crate) trait Lanes:
     fn span(first: usize, last: usize) -> Self::Mask;
     /// The mask as bits, lane l in bit l.
     fn bits(m: Self::Mask) -> u32;
-    /// A mask stored as N lanes of 0 / all-ones bits by [`Lanes::store_mask`].
-    fn load_mask(s: &[f32]) -> Self::Mask;
-    fn store_mask(m: Self::Mask, s: &mut [f32]);
+    /// The mask with lane l set where bit l of `bits` is (bits from N on are ignored).
+    fn from_bits(bits: u32) -> Self::Mask;
 }
 
 /// Lane masks for the columns `first..=last` of a 4-lane group, indexed `first * 4 + last`.
@@ -70,6 +69,26 @@ const SPAN4: [f32x4; 16] = {
             last += 1;
         }
         first += 1;
+    }
+    m
+};
+
+/// The 4-lane masks, indexed by their bits (lane l in bit l).
+const MASK4: [f32x4; 16] = {
+    let mut m = [f32x4::ZERO; 16];
+    let on = f32::from_bits(u32::MAX);
+    let mut bits = 0;
+    while bits < 16 {
+        let mut v = [0.0f32; 4];
+        let mut l = 0;
+        while l < 4 {
+            if bits & (1 << l) != 0 {
+                v[l] = on;
+            }
+            l += 1;
+        }
+        m[bits] = f32x4::new(v);
+        bits += 1;
     }
     m
 };
@@ -138,12 +157,8 @@ impl Lanes for f32x4 {
         m.move_mask() as u32
     }
     #[inline(always)]
-    fn load_mask(s: &[f32]) -> Self {
-        Self::load(s)
-    }
-    #[inline(always)]
-    fn store_mask(m: Self, s: &mut [f32]) {
-        m.store(s);
+    fn from_bits(bits: u32) -> Self {
+        MASK4[(bits & 15) as usize]
     }
 }
 
@@ -372,16 +387,8 @@ pub(crate) mod avx512 {
             u32::from(m.0)
         }
         #[inline(always)]
-        fn load_mask(s: &[f32]) -> M16 {
-            let v = Self::load(s);
-            // SAFETY: see the module doc.
-            M16(unsafe { _mm512_movepi32_mask(_mm512_castps_si512(v.0)) })
-        }
-        #[inline(always)]
-        fn store_mask(m: M16, s: &mut [f32]) {
-            // SAFETY: see the module doc.
-            let v = F32x16(unsafe { _mm512_castsi512_ps(_mm512_movm_epi32(m.0)) });
-            v.store(s);
+        fn from_bits(bits: u32) -> M16 {
+            M16(bits as u16)
         }
     }
 }
@@ -458,10 +465,10 @@ mod tests {
                 let bits = F32x16::bits(F32x16::span(first, last));
                 let expected: u32 = (first..=last).map(|l| 1u32 << l).sum();
                 assert_eq!(bits, expected, "span {first}..={last}");
-                let mut stored = [0.0f32; 16];
-                F32x16::store_mask(F32x16::span(first, last), &mut stored);
-                assert_eq!(F32x16::bits(F32x16::load_mask(&stored)), expected);
             }
+        }
+        for bits in [0u32, 1, 0x8000, 0xFFFF, 0x5A5A, 0x1234] {
+            assert_eq!(F32x16::bits(F32x16::from_bits(bits)), bits);
         }
         let mut c = [0.0f32; 16];
         F32x16::centres().store(&mut c);
@@ -476,10 +483,10 @@ mod tests {
                 let m = f32x4::span(first, last);
                 let expected: u32 = (first..=last).map(|l| 1u32 << l).sum();
                 assert_eq!(f32x4::bits(m), expected);
-                let mut s = [0.0f32; 4];
-                f32x4::store_mask(m, &mut s);
-                assert_eq!(f32x4::bits(f32x4::load_mask(&s)), expected);
             }
+        }
+        for bits in 0..16 {
+            assert_eq!(f32x4::bits(f32x4::from_bits(bits)), bits);
         }
     }
 }
