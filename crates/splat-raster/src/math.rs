@@ -34,15 +34,24 @@ pub fn exp(x: f32) -> f32 {
 
 /// [`exp`] on 4 lanes at once: the same operations in the same order, so every lane is
 /// bit-identical to the scalar function.
-#[allow(clippy::excessive_precision)]
+#[cfg_attr(not(test), allow(dead_code))]
 #[inline(always)]
 pub(crate) fn exp4(x: wide::f32x4) -> wide::f32x4 {
+    use wide::f32x4;
+    exp4_in_range(x.max(f32x4::splat(-87.336_54)).min(f32x4::splat(88.0)))
+}
+
+/// [`exp4`] without its clamps: bit-identical to [`exp`] for x in [−87.336_54, 88] (where
+/// the clamps change nothing); other lanes get unspecified values (no trap), for callers
+/// that bound x themselves or ignore those lanes.
+#[allow(clippy::excessive_precision)]
+#[inline(always)]
+pub(crate) fn exp4_in_range(x: wide::f32x4) -> wide::f32x4 {
     use wide::{f32x4, i32x4};
     const LOG2E: f32 = std::f32::consts::LOG2_E;
     const LN2_HI: f32 = 0.693_359_375;
     const LN2_LO: f32 = -2.121_944_4e-4;
     const ROUND: f32 = 12_582_912.0;
-    let x = x.max(f32x4::splat(-87.336_54)).min(f32x4::splat(88.0));
     let t = x * f32x4::splat(LOG2E) + f32x4::splat(ROUND);
     let k = t - f32x4::splat(ROUND);
     let r = x - k * f32x4::splat(LN2_HI) - k * f32x4::splat(LN2_LO);
@@ -81,9 +90,13 @@ mod tests {
             let mut a = [0.0f32; 4];
             a[..c.len()].copy_from_slice(c);
             let v = exp4(wide::f32x4::new(a)).to_array();
-            for (x, y) in a.iter().zip(v) {
+            let unclamped = exp4_in_range(wide::f32x4::new(a)).to_array();
+            for ((x, y), u) in a.iter().zip(v).zip(unclamped) {
                 let s = exp(*x);
                 assert_eq!(s.to_bits(), y.to_bits(), "exp({x}): scalar {s} vs simd {y}");
+                if (-87.336_54..=88.0).contains(x) {
+                    assert_eq!(s.to_bits(), u.to_bits(), "exp({x}) without clamps: {u}");
+                }
                 if (-87.3..=88.0).contains(x) {
                     let want = f64::from(*x).exp();
                     let rel = ((f64::from(s) - want) / want).abs();

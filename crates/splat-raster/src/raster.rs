@@ -1447,56 +1447,71 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     let mut fill = 0usize;
     let px = V::splat(px0 as f32) + V::centres();
     let pyc = py as f32 + 0.5;
-    for e in entries {
-        let live = V::from_bits(e.lanes) & !s.done;
-        if V::bits(live) == 0 {
-            continue;
+    // Entries go in batches: first every α of the batch (long chains of exp, independent of
+    // the unit's state, so they overlap), then the compositing in depth order (short
+    // chains through T). One entry at a time, the out-of-order window held only about two
+    // of those exp chains.
+    let mut alpha = [zero; BATCH];
+    let mut reach = [V::from_bits(0); BATCH];
+    'walk: for batch in entries.chunks(BATCH) {
+        for ((e, a), m) in batch.iter().zip(&mut alpha).zip(&mut reach) {
+            let lanes = V::from_bits(e.lanes) & !s.done;
+            *m = lanes;
+            if V::bits(lanes) == 0 {
+                continue;
+            }
+            if let Some(sp) = splats.get(e.splat as usize) {
+                (*a, *m) = footprint_alpha::<V>(sp, lanes, px, pyc);
+            }
         }
-        let Some(sp) = splats.get(e.splat as usize) else {
-            continue;
-        };
-        let dy = sp.y - pyc;
-        // c·dy·dy rounds exactly as inside the scalar power expression.
-        let (stop, w) = blend_group::<V>(
-            sp,
-            V::splat(sp.c * dy * dy),
-            V::splat(dy),
-            live,
-            px,
-            !CUTOFF,
-            &mut s,
-        );
-        #[cfg(feature = "counters")]
-        {
-            out.counts.groups += 1;
-            out.counts.live_lanes += u64::from(V::bits(live).count_ones());
-            out.counts.blends += u64::from(V::bits(w.gt(zero)).count_ones());
-        }
-        s.done = s.done | stop;
-        if TOPK {
-            // Lanes whose weight beats the pixel's K-th (0 while the list is not full);
-            // usually few, often none.
-            let cand = w.gt(kth);
-            if V::bits(cand) != 0 {
-                #[cfg(feature = "counters")]
-                {
-                    out.counts.inserted += u64::from(V::bits(cand).count_ones());
+        for ((e, &a), &m) in batch.iter().zip(&alpha).zip(&reach) {
+            // Lanes in the footprint, with α >= 1/255, not stopped.
+            let ok = m & !s.done;
+            #[cfg(feature = "counters")]
+            let live = V::from_bits(e.lanes) & !s.done;
+            #[cfg(feature = "counters")]
+            if V::bits(live) != 0 {
+                out.counts.groups += 1;
+                out.counts.live_lanes += u64::from(V::bits(live).count_ones());
+            }
+            if V::bits(ok) == 0 {
+                // Every lane would add ω = 0 and keep its T, list and state.
+                continue;
+            }
+            let Some(sp) = splats.get(e.splat as usize) else {
+                continue;
+            };
+            let (stop, w) = composite::<V>(sp, a, ok, !CUTOFF, &mut s);
+            #[cfg(feature = "counters")]
+            {
+                out.counts.blends += u64::from(V::bits(w.gt(zero)).count_ones());
+            }
+            s.done = s.done | stop;
+            if TOPK {
+                // Lanes whose weight beats the pixel's K-th (0 while the list is not full);
+                // usually few, often none.
+                let cand = w.gt(kth);
+                if V::bits(cand) != 0 {
+                    #[cfg(feature = "counters")]
+                    {
+                        out.counts.inserted += u64::from(V::bits(cand).count_ones());
+                    }
+                    let id = V::splat(f32::from_bits(sp.id));
+                    kth = insert_group::<V>(lw, lid, k, fill, cand, w, id);
+                    // One more entry in each candidate lane (or one replaced when full).
+                    fill = (fill + 1).min(k);
                 }
-                let id = V::splat(f32::from_bits(sp.id));
-                kth = insert_group::<V>(lw, lid, k, fill, cand, w, id);
-                // One more entry in each candidate lane (or one replaced when full).
-                fill = (fill + 1).min(k);
+                if CUTOFF {
+                    // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so
+                    // once T <= the K-th weight of a full list (> 0) nothing can enter: the
+                    // pixel's list is final and it stops here.
+                    let full = kth.gt(zero);
+                    s.done = s.done | (full & s.t.le(kth));
+                }
             }
-            if CUTOFF {
-                // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so
-                // once T <= the K-th weight of a full list (> 0) nothing can enter: the
-                // pixel's list is final and it stops here.
-                let full = kth.gt(zero);
-                s.done = s.done | (full & s.t.le(kth));
+            if V::bits(s.done) == all {
+                break 'walk;
             }
-        }
-        if V::bits(s.done) == all {
-            break;
         }
     }
     let range = at..at + n;
@@ -1557,33 +1572,47 @@ fn insert_group<V: Lanes>(
     V::load(&lw[(k - 1) * n..])
 }
 
-/// INRIA's per-pixel step of splat `sp` for the N adjacent pixels with centres `px` (pixels
-/// outside `live` are left alone): power = −½(a dx² + c dy²) − b dx dy,
-/// α = min(0.99, o·exp(power)), skip power > 0 or α < 1/255, stop if T(1 − α) < 1e-4, else
-/// ω = T·α, T becomes T(1 − α) and (with `shade`) the sums grow by ω. Every lane performs
-/// the same IEEE operations in the same order as the scalar reference, and masked lanes add
-/// ω = 0 (the sums are finite and >= 0, so x + 0 = x bit for bit): the result equals a
-/// scalar per-pixel loop exactly. Returns the lanes that stopped and the weights (0 outside
-/// the contributing lanes).
+/// Entries whose α [`blend_unit`] computes ahead of compositing them.
+const BATCH: usize = 8;
+
+/// The first half of INRIA's per-pixel step of splat `sp` for the N adjacent pixels with
+/// centres `px` in image row `pyc − 0.5`: power = −½(a dx² + c dy²) − b dx dy,
+/// α = min(0.99, o·exp(power)); returns α and the lanes of `lanes` with power <= 0 and
+/// α >= 1/255. Every lane performs the same IEEE operations in the same order as the
+/// scalar reference.
 #[inline(always)]
-fn blend_group<V: Lanes>(
-    sp: &Splat,
-    cdy: V,
-    dy: V,
-    live: V::Mask,
-    px: V,
-    shade: bool,
-    s: &mut UnitState<V>,
-) -> (V::Mask, V) {
+fn footprint_alpha<V: Lanes>(sp: &Splat, lanes: V::Mask, px: V, pyc: f32) -> (V, V::Mask) {
+    let dy = sp.y - pyc;
+    // c·dy·dy rounds exactly as inside the scalar power expression.
+    let cdy = V::splat(sp.c * dy * dy);
+    let dy = V::splat(dy);
     let dx = V::splat(sp.x) - px;
     let power = V::splat(-0.5) * (V::splat(sp.a) * dx * dx + cdy) - V::splat(sp.b) * dx * dy;
     // Below POWER_FLOOR every α fails the 1/255 test (opacity <= 1), so raising power to
     // it changes no contribution; it keeps o·exp(power) out of the subnormal range, whose
     // products cost a microcode assist each on x86 (the far corners of a thin splat's
     // rectangle reach powers of −1000 and below).
-    let e = power.max(V::splat(POWER_FLOOR)).exp();
-    let alpha = (V::splat(sp.opacity) * e).min(V::splat(ALPHA_MAX));
-    let ok = live & power.le(V::splat(0.0)) & alpha.ge(V::splat(ALPHA_MIN));
+    // Lanes with power > 0 are never drawn, so power is also capped at 0: exp then needs no
+    // clamps of its own (bit-identical to math::exp on [−40, 0]).
+    let e = power.max_c(POWER_FLOOR).min_c(0.0).exp_in_range();
+    let alpha = (V::splat(sp.opacity) * e).min_c(ALPHA_MAX);
+    let ok = lanes & power.le(V::splat(0.0)) & alpha.ge(V::splat(ALPHA_MIN));
+    (alpha, ok)
+}
+
+/// The second half of the per-pixel step, on the lanes `ok` (in the footprint, α >= 1/255,
+/// not stopped): stop if T(1 − α) < 1e-4, else ω = T·α, T becomes T(1 − α) and (with
+/// `shade`) the sums grow by ω. Other lanes add ω = 0 (the sums are finite and >= 0, so
+/// x + 0 = x bit for bit): the result equals a scalar per-pixel loop exactly. Returns the
+/// lanes that stopped and the weights (0 outside the contributing lanes).
+#[inline(always)]
+fn composite<V: Lanes>(
+    sp: &Splat,
+    alpha: V,
+    ok: V::Mask,
+    shade: bool,
+    s: &mut UnitState<V>,
+) -> (V::Mask, V) {
     let test_t = s.t * (V::splat(1.0) - alpha);
     let low = test_t.lt(V::splat(T_MIN));
     let contrib = ok & !low;

@@ -10,7 +10,7 @@ use std::ops::{Add, BitAnd, BitOr, Mul, Not, Sub};
 
 use wide::{f32x4, CmpGe, CmpGt, CmpLe, CmpLt};
 
-use crate::math::exp4;
+use crate::math::{exp4, exp4_in_range};
 
 /// A vector of `N` f32 lanes and its lane mask.
 pub(crate) trait Lanes:
@@ -28,10 +28,14 @@ pub(crate) trait Lanes:
     fn load(s: &[f32]) -> Self;
     /// Stores into the first `N` values of `s` (panics if it is shorter).
     fn store(self, s: &mut [f32]);
+    // The general min, max and exp are the blend's reference semantics: the constant and
+    // unclamped forms it runs are tested against them lane for lane.
     /// Lanewise minimum; a NaN lane of `self` gives `rhs`'s lane, a NaN lane of `rhs`
     /// gives `self`'s (as `wide`).
+    #[cfg_attr(not(test), allow(dead_code))]
     fn min(self, rhs: Self) -> Self;
     /// Lanewise maximum, NaN rules as [`Lanes::min`].
+    #[cfg_attr(not(test), allow(dead_code))]
     fn max(self, rhs: Self) -> Self;
     fn lt(self, rhs: Self) -> Self::Mask;
     fn le(self, rhs: Self) -> Self::Mask;
@@ -40,7 +44,15 @@ pub(crate) trait Lanes:
     /// `t` in the lanes of `m`, `f` elsewhere (bit patterns moved unchanged).
     fn select(m: Self::Mask, t: Self, f: Self) -> Self;
     /// [`crate::math::exp`] on every lane, bit-identical to it.
+    #[cfg_attr(not(test), allow(dead_code))]
     fn exp(self) -> Self;
+    /// [`Lanes::exp`] without its clamps: bit-identical to it on lanes in
+    /// [−87.336_54, 88], unspecified values (no trap) on the others.
+    fn exp_in_range(self) -> Self;
+    /// [`Lanes::max`] with every lane of `rhs` equal to `c`, which is not NaN.
+    fn max_c(self, c: f32) -> Self;
+    /// [`Lanes::min`] with every lane of `rhs` equal to `c`, which is not NaN.
+    fn min_c(self, c: f32) -> Self;
     /// Lane l holds l + 0.5 (pixel-centre offsets within a group).
     fn centres() -> Self;
     /// The lanes `first..=last` (both < N, first <= last).
@@ -143,6 +155,18 @@ impl Lanes for f32x4 {
     #[inline(always)]
     fn exp(self) -> Self {
         exp4(self)
+    }
+    #[inline(always)]
+    fn exp_in_range(self) -> Self {
+        exp4_in_range(self)
+    }
+    #[inline(always)]
+    fn max_c(self, c: f32) -> Self {
+        f32x4::max(self, f32x4::splat(c))
+    }
+    #[inline(always)]
+    fn min_c(self, c: f32) -> Self {
+        f32x4::min(self, f32x4::splat(c))
     }
     #[inline(always)]
     fn centres() -> Self {
@@ -337,15 +361,31 @@ pub(crate) mod avx512 {
             F32x16(unsafe { _mm512_mask_blend_ps(m.0, f.0, t.0) })
         }
         #[inline(always)]
-        #[allow(clippy::excessive_precision)]
+        fn max_c(self, c: f32) -> Self {
+            // vmaxps returns its second operand where either is NaN: `c` where self is,
+            // as `wide`, and `c` is never NaN.
+            // SAFETY: see the module doc.
+            F32x16(unsafe { _mm512_max_ps(self.0, _mm512_set1_ps(c)) })
+        }
+        #[inline(always)]
+        fn min_c(self, c: f32) -> Self {
+            // SAFETY: see the module doc.
+            F32x16(unsafe { _mm512_min_ps(self.0, _mm512_set1_ps(c)) })
+        }
+        #[inline(always)]
         fn exp(self) -> Self {
-            // The operations of `math::exp`, in its order.
+            self.max_c(-87.336_54).min_c(88.0).exp_in_range()
+        }
+        #[inline(always)]
+        #[allow(clippy::excessive_precision)]
+        fn exp_in_range(self) -> Self {
+            // The operations of `math::exp` after its clamps, in its order.
             const LOG2E: f32 = std::f32::consts::LOG2_E;
             const LN2_HI: f32 = 0.693_359_375;
             const LN2_LO: f32 = -2.121_944_4e-4;
             const ROUND: f32 = 12_582_912.0;
             let s = Self::splat;
-            let x = self.max(s(-87.336_54)).min(s(88.0));
+            let x = self;
             let t = x * s(LOG2E) + s(ROUND);
             let k = t - s(ROUND);
             let r = x - k * s(LN2_HI) - k * s(LN2_LO);
@@ -436,10 +476,22 @@ mod tests {
         let bits4 = |v: f32x4| v.to_array().map(f32::to_bits);
         for (x, y) in xs.chunks_exact(16).zip(ys.chunks_exact(16)) {
             let (a, b) = (F32x16::load(x), F32x16::load(y));
-            let wide: [F32x16; 7] = [a + b, a - b, a * b, a.min(b), a.max(b), a.exp(), {
-                let m = a.lt(b) | (a.ge(b) & b.le(a) & !a.gt(b));
-                F32x16::select(m, a, b)
-            }];
+            let wide: [F32x16; 11] = [
+                a + b,
+                a - b,
+                a * b,
+                a.min(b),
+                a.max(b),
+                a.exp(),
+                {
+                    let m = a.lt(b) | (a.ge(b) & b.le(a) & !a.gt(b));
+                    F32x16::select(m, a, b)
+                },
+                a.max_c(-40.0),
+                a.min_c(0.99),
+                a.max_c(-40.0).min_c(0.0).exp_in_range(),
+                F32x16::select(F32x16::from_bits(0x5A5A), F32x16::splat(1.0), F32x16::splat(0.0)),
+            ];
             for (q, (x4, y4)) in x.chunks_exact(4).zip(y.chunks_exact(4)).enumerate() {
                 let (a4, b4) = (f32x4::load(x4), f32x4::load(y4));
                 let m4 = a4.lt(b4) | (a4.ge(b4) & b4.le(a4) & !a4.gt(b4));
@@ -451,6 +503,16 @@ mod tests {
                     Lanes::max(a4, b4),
                     Lanes::exp(a4),
                     f32x4::select(m4, a4, b4),
+                    // The constant forms equal the general ones (NaN rules included).
+                    Lanes::max(a4, f32x4::splat(-40.0)),
+                    Lanes::min(a4, f32x4::splat(0.99)),
+                    // exp without clamps equals exp where the input is in range.
+                    Lanes::exp(a4.max_c(-40.0).min_c(0.0)),
+                    f32x4::select(
+                        f32x4::from_bits((0x5A5A >> (4 * q)) & 15),
+                        f32x4::splat(1.0),
+                        f32x4::splat(0.0),
+                    ),
                 ];
                 for (w, n) in wide.iter().zip(narrow) {
                     let mut out = [0.0f32; 16];
