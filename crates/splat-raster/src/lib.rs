@@ -54,6 +54,17 @@
 //!   Every lane performs the same IEEE operations as the scalar formula, so both widths
 //!   give the same bytes as a scalar per-pixel loop ([`Simd`] and
 //!   [`Rasterizer::set_simd`] exist to compare their speed; the tests render with both).
+//! * **Blend loop.** A tile is cut into units of N adjacent pixels of one row (a whole
+//!   row with 16 lanes). Its depth-ordered splats are first appended to the lists of the
+//!   units they reach (the rows of the splat's rectangle; with 4 lanes only the groups of
+//!   each row's span), then each unit walks its own list with its whole state (T, the sums,
+//!   stopped lanes, the K-th weight) in registers and stops once all its pixels have, so
+//!   nothing but T's few operations chains one splat to the next. The α of a batch of 8
+//!   entries is computed before they are composited, so their exp chains overlap. Powers
+//!   are clamped to [−40, 0] before exp, which changes no result: below −40 no α reaches
+//!   1/255 (opacity <= 1), above 0 nothing is drawn, and without the floor o·e^power of a
+//!   thin splat's far rectangle corners lands in the subnormal range, where every product
+//!   costs a microcode assist on x86 (that alone made colour renders ~1.35× slower).
 //! * **Exact top-K.** While a tile is blended each pixel's list lives in the worker's tile
 //!   scratch, rank-major per lane group (rank r of all the group's pixels is one SIMD
 //!   vector), so a new contributor is inserted into every lane that wants it with one pass

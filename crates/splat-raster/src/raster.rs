@@ -1322,7 +1322,15 @@ fn distribute<V: Lanes>(
         // With a group per tile row, narrowing a row to its span saves no group, and the
         // pixels outside it fail the alpha test anyway (the span is a superset of the
         // pixels with alpha >= 1/255): solve spans only for narrower groups.
-        if n == TILE || sp.inv_a <= 0.0 {
+        if n == TILE {
+            // One group per row, the same lanes in each.
+            let lanes = V::bits(V::span(cx0 - x0, cx1 - x0));
+            for unit in units.get_mut(cy0 - y0..cy1 - y0 + 1).into_iter().flatten() {
+                unit.push(UnitEntry { splat: e, lanes });
+            }
+            continue;
+        }
+        if sp.inv_a <= 0.0 {
             for py in cy0..cy1 + 1 {
                 push_columns(py - y0, cx0 - x0, cx1 - x0);
             }
