@@ -938,6 +938,9 @@ struct TileScratch {
     /// Per blend unit (N adjacent pixels of a tile row): the splats of the tile that reach
     /// it, in depth order (see `blend_tile`).
     units: Vec<Vec<UnitEntry>>,
+    /// Per blend unit: its lists' ranks from this one on are padding in every lane (they
+    /// were never written in this tile: the lists are not cleared between tiles).
+    fill: Vec<u16>,
     tile_start: Vec<usize>,
     tile_entries: Vec<u32>,
     /// One tile's lists in pixel-major form, for [`Rasterizer::render_tiles`].
@@ -1147,22 +1150,38 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
     let k = out.k;
     let (lw, lid) = (flat(&st.lw), flat(&st.lid));
     for row in 0..rows {
-        for col in 0..cols {
-            let group = row * (TILE / N) + col / N;
-            let first = group * k * N + col % N;
-            let (Some(sw), Some(sid)) = (lw.get(first..), lid.get(first..)) else {
+        let slot = row * out.stride + out.base;
+        let (Some(dw), Some(did)) = (
+            out.w.get_mut(slot..slot + cols * k),
+            out.id.get_mut(slot..slot + cols * k),
+        ) else {
+            continue;
+        };
+        for (g, (gw, gid)) in dw.chunks_mut(N * k).zip(did.chunks_mut(N * k)).enumerate() {
+            let group = row * (TILE / N) + g;
+            // Ranks from the group's fill on are padding (not cleared in the scratch).
+            let fill = st.fill.get(group).map_or(0, |&f| usize::from(f)).min(k);
+            let first = group * k * N;
+            let (Some(sw), Some(sid)) = (
+                lw.get(first..first + fill * N),
+                lid.get(first..first + fill * N),
+            ) else {
                 continue;
             };
-            let slot = row * out.stride + out.base + col * k;
-            if let Some(dw) = out.w.get_mut(slot..slot + k) {
-                for (d, s) in dw.iter_mut().zip(sw.iter().step_by(N)) {
-                    *d = *s;
+            // Rank-major (rank r of the group's N pixels adjacent) to pixel-major.
+            for (r, (rw, rid)) in sw.chunks_exact(N).zip(sid.chunks_exact(N)).enumerate() {
+                for (lane, (w, id)) in rw.iter().zip(rid).enumerate() {
+                    if let (Some(dw), Some(did)) =
+                        (gw.get_mut(lane * k + r), gid.get_mut(lane * k + r))
+                    {
+                        *dw = *w;
+                        *did = id.to_bits();
+                    }
                 }
             }
-            if let Some(did) = out.id.get_mut(slot..slot + k) {
-                for (d, s) in did.iter_mut().zip(sid.iter().step_by(N)) {
-                    *d = s.to_bits();
-                }
+            for (pw, pid) in gw.chunks_mut(k).zip(gid.chunks_mut(k)) {
+                pw[fill..].fill(0.0);
+                pid[fill..].fill(NO_GAUSSIAN);
             }
         }
     }
@@ -1240,6 +1259,7 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
 ) {
     let units_per_row = TILE / V::N;
     st.units.resize_with(TILE_PIXELS / V::N, Vec::new);
+    st.fill.resize(TILE_PIXELS / V::N, 0);
     let units = &mut st.units[..TILE_PIXELS / V::N];
     for unit in units.iter_mut() {
         unit.clear();
@@ -1255,6 +1275,7 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         wsum: pixels_mut(&mut st.wsum),
         lw: flat_mut(&mut st.lw),
         lid: flat_mut(&mut st.lid),
+        fill: &mut st.fill,
         k,
         counts: &mut st.counts,
     };
@@ -1396,6 +1417,7 @@ struct UnitOut<'a> {
     wsum: &'a mut [f32; TILE_PIXELS],
     lw: &'a mut [f32],
     lid: &'a mut [f32],
+    fill: &'a mut [u16],
     k: usize,
     #[cfg_attr(not(feature = "counters"), allow(dead_code))]
     counts: &'a mut BlendCounts,
@@ -1445,12 +1467,9 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     let (Some(lw), Some(lid)) = (out.lw.get_mut(lists.clone()), out.lid.get_mut(lists)) else {
         return;
     };
-    if TOPK {
-        lw.fill(0.0);
-        lid.fill(f32::from_bits(NO_GAUSSIAN));
-    }
     // The K-th weights of the lists (0 while not full), and the ranks from `fill` on that
-    // hold padding in every lane (the longest list's length).
+    // are padding in every lane (the longest list's length): those ranks still hold an
+    // earlier tile's entries, which `insert_group` and `write_lists` never read.
     let mut kth = zero;
     let mut fill = 0usize;
     let px = V::splat(px0 as f32) + V::centres();
@@ -1522,6 +1541,10 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
             }
         }
     }
+    if let Some(f) = out.fill.get_mut(at / n) {
+        // At most K <= MAX_TOP_K: fits.
+        *f = fill as u16;
+    }
     let range = at..at + n;
     s.t.store(&mut out.t[range.clone()]);
     if !CUTOFF {
@@ -1534,8 +1557,9 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
 }
 
 /// Inserts (w, id) into the sorted lists of the lanes in `cand` of one group (`lw[r * N..]`,
-/// `lid[r * N..]`: rank r of the N lists) whose ranks from `fill` on hold padding in every
-/// lane; returns the new K-th weights. Ranks are rewritten from the last non-padding one
+/// `lid[r * N..]`: rank r of the N lists) whose ranks from `fill` on are padding in every
+/// lane (whatever they hold: rank `fill` is read as padding, and later ranks are not
+/// read); returns the new K-th weights (0 while the lists are not full). Ranks are rewritten from the last non-padding one
 /// (or padding rank `fill`) upwards, all candidate lanes at once (ranks further down would
 /// only shift padding into padding): rank r takes rank r − 1's entry in
 /// lanes whose newcomer sits above r, the newcomer in lanes where it sits exactly at r, and
@@ -1554,8 +1578,11 @@ fn insert_group<V: Lanes>(
 ) -> V {
     let n = V::N;
     let mut r = fill.min(k - 1);
-    let mut cur_w = V::load(&lw[r * n..]);
-    let mut cur_id = V::load(&lid[r * n..]);
+    let (mut cur_w, mut cur_id) = if r == fill {
+        (V::splat(0.0), V::splat(f32::from_bits(NO_GAUSSIAN)))
+    } else {
+        (V::load(&lw[r * n..]), V::load(&lid[r * n..]))
+    };
     // Lanes whose newcomer belongs at rank r or above.
     let mut at_or_above = cand & w.gt(cur_w);
     loop {
@@ -1577,7 +1604,12 @@ fn insert_group<V: Lanes>(
         cur_id = prev_id;
         r -= 1;
     }
-    V::load(&lw[(k - 1) * n..])
+    // Every rank below the new fill has been written.
+    if fill + 1 >= k {
+        V::load(&lw[(k - 1) * n..])
+    } else {
+        V::splat(0.0)
+    }
 }
 
 /// Entries whose α [`blend_unit`] computes ahead of compositing them.

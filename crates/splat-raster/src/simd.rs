@@ -490,7 +490,11 @@ mod tests {
                 a.max_c(-40.0),
                 a.min_c(0.99),
                 a.max_c(-40.0).min_c(0.0).exp_in_range(),
-                F32x16::select(F32x16::from_bits(0x5A5A), F32x16::splat(1.0), F32x16::splat(0.0)),
+                F32x16::select(
+                    F32x16::from_bits(0x5A5A),
+                    F32x16::splat(1.0),
+                    F32x16::splat(0.0),
+                ),
             ];
             for (q, (x4, y4)) in x.chunks_exact(4).zip(y.chunks_exact(4)).enumerate() {
                 let (a4, b4) = (f32x4::load(x4), f32x4::load(y4));
