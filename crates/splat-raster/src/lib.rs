@@ -73,7 +73,9 @@
 //!   newcomer goes after every entry with a weight >= its own and is dropped when the list
 //!   is full and its weight is <= the K-th: the result is the K largest weights of the full
 //!   contributor list, in descending order, ties in depth order (nearer first). Pixels with
-//!   fewer hits are padded with id [`NO_GAUSSIAN`] and weight 0. A finished tile's lists
+//!   fewer hits are padded with id [`NO_GAUSSIAN`] and weight 0 (the scratch lists are not
+//!   cleared between tiles: ranks past a group's longest list are read and written out as
+//!   padding). A finished tile's lists
 //!   are transposed into the view's output, K × 8 bytes per pixel (design.md: a true top-K,
 //!   not the first K hits), or handed to a consumer by [`Rasterizer::render_tiles`]. A
 //!   lists-only render (no colour, depth, alpha or T) stops a pixel as soon as T <= its
