@@ -912,11 +912,10 @@ fn flat_mut(v: &mut [Line]) -> &mut [f32] {
 /// The per-pixel arrays are row-major over the tile's pixels. The lists are rank-major per
 /// group (`lw[(group * K + r) * N + lane]` holds rank r of the group's pixel `lane`), so
 /// one insertion serves every lane of a group that has a candidate with SIMD compares and
-/// blends, without per-lane branches; they start as padding (weight 0, [`NO_GAUSSIAN`]),
-/// so a list that is not full needs no per-lane count, and the K-th rank is the bar a
-/// newcomer must beat (one count per group, the longest list, held while the group is
-/// blended, only spares insertions the walk through padding). They reach the output once
-/// per tile.
+/// blends, without per-lane branches; the ranks past a group's longest list (`fill`) count
+/// as padding (weight 0, [`NO_GAUSSIAN`]) whatever an earlier tile left there, so the
+/// lists are never cleared, a list that is not full needs no per-lane count, and the K-th
+/// rank is the bar a newcomer must beat. They reach the output once per tile.
 #[derive(Debug, Default)]
 struct TileScratch {
     /// Transmittance.
@@ -1330,16 +1329,6 @@ fn distribute<V: Lanes>(
         if cx0 > cx1 || cy0 > cy1 {
             continue;
         }
-        let mut push_columns = |row: usize, lo: usize, hi: usize| {
-            // lo..=hi are tile-local columns.
-            for gi in lo / n..hi / n + 1 {
-                let c0 = gi * n;
-                let lanes = V::bits(V::span(lo.max(c0) - c0, hi.min(c0 + n - 1) - c0));
-                if let Some(unit) = units.get_mut(row * units_per_row + gi) {
-                    unit.push(UnitEntry { splat: e, lanes });
-                }
-            }
-        };
         // With a group per tile row, narrowing a row to its span saves no group, and the
         // pixels outside it fail the alpha test anyway (the span is a superset of the
         // pixels with alpha >= 1/255): solve spans only for narrower groups.
@@ -1351,15 +1340,23 @@ fn distribute<V: Lanes>(
             }
             continue;
         }
-        if sp.inv_a <= 0.0 {
-            for py in cy0..cy1 + 1 {
-                push_columns(py - y0, cx0 - x0, cx1 - x0);
-            }
-            continue;
-        }
         for py in cy0..cy1 + 1 {
-            if let Some((lo, hi)) = row_span(sp, py, cx0, cx1) {
-                push_columns(py - y0, lo - x0, hi - x0);
+            // Whole rectangle rows where the spans cannot be trusted.
+            let span = if sp.inv_a > 0.0 {
+                row_span(sp, py, cx0, cx1)
+            } else {
+                Some((cx0, cx1))
+            };
+            let Some((lo, hi)) = span.map(|(lo, hi)| (lo - x0, hi - x0)) else {
+                continue;
+            };
+            // lo..=hi are tile-local columns.
+            for gi in lo / n..hi / n + 1 {
+                let c0 = gi * n;
+                let lanes = V::bits(V::span(lo.max(c0) - c0, hi.min(c0 + n - 1) - c0));
+                if let Some(unit) = units.get_mut((py - y0) * units_per_row + gi) {
+                    unit.push(UnitEntry { splat: e, lanes });
+                }
             }
         }
     }
@@ -1559,8 +1556,8 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
 /// Inserts (w, id) into the sorted lists of the lanes in `cand` of one group (`lw[r * N..]`,
 /// `lid[r * N..]`: rank r of the N lists) whose ranks from `fill` on are padding in every
 /// lane (whatever they hold: rank `fill` is read as padding, and later ranks are not
-/// read); returns the new K-th weights (0 while the lists are not full). Ranks are rewritten from the last non-padding one
-/// (or padding rank `fill`) upwards, all candidate lanes at once (ranks further down would
+/// read); returns the new K-th weights (0 while the lists are not full). Ranks are
+/// rewritten from the last non-padding one (or padding rank `fill`) upwards, all candidate lanes at once (ranks further down would
 /// only shift padding into padding): rank r takes rank r − 1's entry in
 /// lanes whose newcomer sits above r, the newcomer in lanes where it sits exactly at r, and
 /// keeps its entry elsewhere; the pass stops at the first rank no lane shifts into. A

@@ -55,35 +55,17 @@ pub(crate) trait Lanes:
     fn min_c(self, c: f32) -> Self;
     /// Lane l holds l + 0.5 (pixel-centre offsets within a group).
     fn centres() -> Self;
-    /// The lanes `first..=last` (both < N, first <= last).
-    fn span(first: usize, last: usize) -> Self::Mask;
     /// The mask as bits, lane l in bit l.
     fn bits(m: Self::Mask) -> u32;
     /// The mask with lane l set where bit l of `bits` is (bits from N on are ignored).
     fn from_bits(bits: u32) -> Self::Mask;
-}
-
-/// Lane masks for the columns `first..=last` of a 4-lane group, indexed `first * 4 + last`.
-const SPAN4: [f32x4; 16] = {
-    let mut m = [f32x4::ZERO; 16];
-    let on = f32::from_bits(u32::MAX);
-    let mut first = 0;
-    while first < 4 {
-        let mut last = first;
-        while last < 4 {
-            let mut v = [0.0f32; 4];
-            let mut l = first;
-            while l <= last {
-                v[l] = on;
-                l += 1;
-            }
-            m[first * 4 + last] = f32x4::new(v);
-            last += 1;
-        }
-        first += 1;
+    /// The lanes `first..=last` (both < N <= 16, first <= last).
+    #[inline(always)]
+    fn span(first: usize, last: usize) -> Self::Mask {
+        // Bits first..=last (last < 16, so the shift fits in u32).
+        Self::from_bits((2u32 << last) - (1u32 << first))
     }
-    m
-};
+}
 
 /// The 4-lane masks, indexed by their bits (lane l in bit l).
 const MASK4: [f32x4; 16] = {
@@ -171,10 +153,6 @@ impl Lanes for f32x4 {
     #[inline(always)]
     fn centres() -> Self {
         f32x4::new([0.5, 1.5, 2.5, 3.5])
-    }
-    #[inline(always)]
-    fn span(first: usize, last: usize) -> Self {
-        SPAN4[first * 4 + last]
     }
     #[inline(always)]
     fn bits(m: Self) -> u32 {
@@ -416,11 +394,6 @@ pub(crate) mod avx512 {
                 c
             };
             Self::load(&C)
-        }
-        #[inline(always)]
-        fn span(first: usize, last: usize) -> M16 {
-            // Bits first..=last (last < 16, so the shift fits in u32).
-            M16((((2u32 << last) - (1u32 << first)) & 0xFFFF) as u16)
         }
         #[inline(always)]
         fn bits(m: M16) -> u32 {
