@@ -156,6 +156,13 @@ pub struct ViewRender {
     transmittance: Vec<f32>,
     ids: Vec<u32>,
     weights: Vec<f32>,
+    /// Per tile (row-major): its lists in `ids` and `weights` are all padding, as the
+    /// previous render left them for the (width, height, K) in `padded_layout`. An empty
+    /// tile of the next render with that layout then skips rewriting them (on an orbit
+    /// around an object most of the image is background, and padding an empty tile's
+    /// lists writes K x 8 bytes per pixel).
+    padded: Vec<bool>,
+    padded_layout: (usize, usize, usize),
     scratch: ViewScratch,
 }
 
@@ -297,6 +304,13 @@ impl ViewRender {
         size(&mut self.weights, k > 0, n * k);
         self.ids.truncate(n * k);
         self.ids.resize(n * k, NO_GAUSSIAN);
+        // The flags describe the buffers only as laid out by the previous render.
+        if self.padded_layout != (w, h, k) {
+            self.padded_layout = (w, h, k);
+            self.padded.clear();
+        }
+        let (tiles_x, tiles_y) = cam.tiles();
+        self.padded.resize(tiles_x * tiles_y, false);
     }
 }
 
@@ -766,6 +780,8 @@ struct RowOut<'a> {
     transmittance: Option<&'a mut [f32]>,
     ids: Option<&'a mut [u32]>,
     weights: Option<&'a mut [f32]>,
+    /// The row's tiles' [`ViewRender::padded`] flags.
+    padded: &'a mut [bool],
 }
 
 fn row_chunks<T>(buf: &mut [T], row_len: usize, rows: usize) -> Vec<Option<&mut [T]>> {
@@ -798,6 +814,7 @@ fn blend(
     let mut trans = row_chunks(&mut out.transmittance, w, tiles_y).into_iter();
     let mut ids = row_chunks(&mut out.ids, w * k, tiles_y).into_iter();
     let mut weights = row_chunks(&mut out.weights, w * k, tiles_y).into_iter();
+    let mut padded = out.padded.chunks_mut(tiles_x);
     let rows: Vec<RowOut<'_>> = (0..tiles_y)
         .map(|ty| RowOut {
             ty,
@@ -807,6 +824,7 @@ fn blend(
             transmittance: trans.next().flatten(),
             ids: ids.next().flatten(),
             weights: weights.next().flatten(),
+            padded: padded.next().unwrap_or_default(),
         })
         .collect();
     let scratch = &out.scratch;
@@ -1008,10 +1026,18 @@ fn render_row(
                 w,
                 id,
             };
+            let padded = row.padded.get_mut(tx);
+            let was_padded = padded.as_deref().is_some_and(|p| *p);
+            if let Some(p) = padded {
+                *p = tile.is_empty();
+            }
             if tile.is_empty() {
-                // Nothing to sort or transpose: every list is padding.
+                // Nothing to sort or transpose: every list is padding (and still is where
+                // the previous render left this tile empty).
                 blend_tile_at::<false, false>(ctx, splats, tile, rect, st);
-                pad_lists(&mut out, x1 - x0, y1 - y0);
+                if !was_padded {
+                    pad_lists(&mut out, x1 - x0, y1 - y0);
+                }
             } else {
                 if ctx.lists_only {
                     blend_tile_at::<true, true>(ctx, splats, tile, rect, st);

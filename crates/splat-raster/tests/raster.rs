@@ -1351,3 +1351,82 @@ fn blend_counts_equal_the_brute_force_contributions() {
         );
     }
 }
+
+/// A reused [`ViewRender`] skips re-padding the lists of tiles that were empty in its
+/// previous render and still are: views that empty some tiles and fill others, in turn,
+/// with K and the image size changing in between, give the bytes of fresh renders.
+#[test]
+fn reused_renders_equal_fresh_ones_as_tiles_empty_and_fill() {
+    let intr = [120.0, 120.0, 80.5, 58.5];
+    // Few Gaussians, so that some tiles of each view are empty.
+    let g = random_scene(
+        21,
+        120,
+        &camera_at(161, 117, intr, [0.0; 3], [0.0, 0.0, 1.0]),
+    );
+    let look = |target: [f64; 3]| camera::look_at([0.0; 3], target, [0.0, -1.0, 0.0]).unwrap();
+    // Ahead (the scene), half turned (part of it), behind (only the stragglers).
+    let poses = [
+        look([0.0, 0.0, 1.0]),
+        look([1.0, 0.0, 0.6]),
+        look([0.0, 0.2, -1.0]),
+    ];
+    let cams = camera::cameras_from_poses(&poses, 161, 117, intr);
+    let small = camera::cameras_from_poses(&poses, 97, 50, intr);
+    // Which tiles have only padding, per view.
+    let empty_tiles = |r: &ViewRender| -> Vec<bool> {
+        let (k, w) = (r.k(), r.width());
+        let ids = r.topk_ids().unwrap();
+        let mut empty = vec![true; w.div_ceil(TILE) * r.height().div_ceil(TILE)];
+        for (p, list) in ids.chunks_exact(k).enumerate() {
+            if list[0] != NO_GAUSSIAN {
+                empty[(p / w / TILE) * w.div_ceil(TILE) + (p % w) / TILE] = false;
+            }
+        }
+        empty
+    };
+    for raster in rasterizers(&g) {
+        let mut reused = ViewRender::default();
+        let mut emptied = [false; 2]; // a tile went empty -> filled, and filled -> empty
+        let mut last: Option<Vec<bool>> = None;
+        let steps: [(&Cameras, usize, usize); 9] = [
+            (&cams, 0, 10),
+            (&cams, 2, 10),
+            (&cams, 0, 10),
+            (&cams, 1, 10),
+            (&cams, 2, 10),
+            (&cams, 2, 4),
+            (&cams, 0, 4),
+            (&small, 2, 4),
+            (&cams, 2, 10),
+        ];
+        for (i, &(cs, view, k)) in steps.iter().enumerate() {
+            let opts = all_outputs(k);
+            raster
+                .render_view_into(cs, view, &opts, &mut reused)
+                .unwrap();
+            let fresh = raster.render_view(cs, view, &opts).unwrap();
+            let what = format!("{} step {i}", raster.simd().name());
+            assert_eq!(reused.topk_ids(), fresh.topk_ids(), "{what}");
+            assert_eq!(
+                reused
+                    .topk_weights()
+                    .map(|w| w.iter().map(|v| v.to_bits()).collect::<Vec<_>>()),
+                fresh
+                    .topk_weights()
+                    .map(|w| w.iter().map(|v| v.to_bits()).collect()),
+                "{what}"
+            );
+            assert_eq!(reused.color(), fresh.color(), "{what}");
+            let empty = empty_tiles(&fresh);
+            if let Some(prev) = last.filter(|p| p.len() == empty.len()) {
+                for (a, b) in prev.iter().zip(&empty) {
+                    emptied[0] |= *a && !*b;
+                    emptied[1] |= !*a && *b;
+                }
+            }
+            last = Some(empty);
+        }
+        assert_eq!(emptied, [true, true], "the views must empty and fill tiles");
+    }
+}
