@@ -1026,11 +1026,10 @@ fn render_row(
                 w,
                 id,
             };
-            let padded = row.padded.get_mut(tx);
-            let was_padded = padded.as_deref().is_some_and(|p| *p);
-            if let Some(p) = padded {
-                *p = tile.is_empty();
-            }
+            // Cleared before the lists are touched and set once padding is complete, so
+            // that the flag never claims more than the buffers hold.
+            let flag = row.padded.get_mut(tx);
+            let was_padded = flag.is_some_and(|p| std::mem::replace(p, false));
             if tile.is_empty() {
                 // Nothing to sort or transpose: every list is padding (and still is where
                 // the previous render left this tile empty).
@@ -1048,6 +1047,9 @@ fn render_row(
                     4 => write_lists::<4>(&mut out, x1 - x0, y1 - y0, st),
                     _ => write_lists::<16>(&mut out, x1 - x0, y1 - y0, st),
                 }
+            }
+            if let (true, Some(p)) = (tile.is_empty(), row.padded.get_mut(tx)) {
+                *p = true;
             }
         } else {
             blend_tile_at::<false, false>(ctx, splats, tile, rect, st);
