@@ -157,12 +157,11 @@ pub struct ViewRender {
     ids: Vec<u32>,
     weights: Vec<f32>,
     /// Per tile (row-major): its lists in `ids` and `weights` are all padding, as the
-    /// previous render left them for the (width, height, K) in `padded_layout`. An empty
-    /// tile of the next render with that layout then skips rewriting them (on an orbit
-    /// around an object most of the image is background, and padding an empty tile's
-    /// lists writes K x 8 bytes per pixel).
+    /// previous render left them. An empty tile of the next render with the same width,
+    /// height and K then skips rewriting them (on an orbit around an object most of the
+    /// image is background, and padding an empty tile's lists writes K x 8 bytes per
+    /// pixel).
     padded: Vec<bool>,
-    padded_layout: (usize, usize, usize),
     scratch: ViewScratch,
 }
 
@@ -285,6 +284,9 @@ impl ViewRender {
     fn resize(&mut self, view: usize, cam: &ViewCamera, opts: &RenderOptions) {
         let (w, h) = (cam.width as usize, cam.height as usize);
         let n = w * h;
+        let k = opts.top_k.unwrap_or(0);
+        // The padded flags describe the buffers only as laid out by the previous render.
+        let same_layout = (self.width, self.height, self.k()) == (w, h, k);
         self.view = view;
         self.width = w;
         self.height = h;
@@ -300,13 +302,10 @@ impl ViewRender {
         size(&mut self.depth, opts.depth != DepthMode::None, n);
         size(&mut self.alpha, opts.alpha, n);
         size(&mut self.transmittance, opts.transmittance, n);
-        let k = opts.top_k.unwrap_or(0);
         size(&mut self.weights, k > 0, n * k);
         self.ids.truncate(n * k);
         self.ids.resize(n * k, NO_GAUSSIAN);
-        // The flags describe the buffers only as laid out by the previous render.
-        if self.padded_layout != (w, h, k) {
-            self.padded_layout = (w, h, k);
+        if !same_layout {
             self.padded.clear();
         }
         let (tiles_x, tiles_y) = cam.tiles();
@@ -1585,12 +1584,13 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
 /// `lid[r * N..]`: rank r of the N lists) whose ranks from `fill` on are padding in every
 /// lane (whatever they hold: rank `fill` is read as padding, and later ranks are not
 /// read); returns the new K-th weights (0 while the lists are not full). Ranks are
-/// rewritten from the last non-padding one (or padding rank `fill`) upwards, all candidate lanes at once (ranks further down would
-/// only shift padding into padding): rank r takes rank r − 1's entry in
-/// lanes whose newcomer sits above r, the newcomer in lanes where it sits exactly at r, and
-/// keeps its entry elsewhere; the pass stops at the first rank no lane shifts into. A
-/// newcomer goes after the entries of equal weight (strict >), so ties keep depth order, and
-/// a full list drops its last entry: the same lists as inserting one pixel at a time.
+/// rewritten from the last non-padding one (or padding rank `fill`) upwards, all candidate
+/// lanes at once (ranks further down would only shift padding into padding): rank r takes
+/// rank r − 1's entry in lanes whose newcomer sits above r, the newcomer in lanes where it
+/// sits exactly at r, and keeps its entry elsewhere; the pass stops at the first rank no
+/// lane shifts into. A newcomer goes after the entries of equal weight (strict >), so ties
+/// keep depth order, and a full list drops its last entry: the same lists as inserting one
+/// pixel at a time.
 #[inline(always)]
 fn insert_group<V: Lanes>(
     lw: &mut [f32],
