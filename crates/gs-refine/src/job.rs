@@ -10,7 +10,7 @@ use profuse_formats::{Cameras, FileKind, Gaussians};
 use serde::{Deserialize, Serialize};
 
 use crate::views::load_views;
-use crate::{Config, Params, RefineError, Result, Trainer};
+use crate::{Config, DensifyConfig, Params, RefineError, Result, Trainer};
 
 /// The parameters of a refinement (the pipeline's `[gs_refine]` section).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -28,6 +28,21 @@ pub struct JobParams {
     pub prune_every: usize,
     /// Opacity threshold of the pruning (3DGS: 0.005).
     pub prune_opacity: f64,
+    /// Raise the SH degree to this before training (new coefficients start at zero; never
+    /// lowers the input's degree).
+    pub sh_degree: usize,
+    /// Last iteration that densifies (0: no densification).
+    pub densify_until: usize,
+    /// First iteration that densifies.
+    pub densify_from: usize,
+    /// Densify every this many iterations.
+    pub densify_every: usize,
+    /// Mean NDC positional gradient at which a Gaussian is densified.
+    pub densify_grad: f64,
+    /// Largest scale (share of the scene extent) up to which a Gaussian is cloned, not split.
+    pub percent_dense: f64,
+    /// Cap on the number of Gaussians densification may reach (0: none).
+    pub max_gaussians: usize,
 }
 
 impl Default for JobParams {
@@ -39,6 +54,34 @@ impl Default for JobParams {
             seed: c.seed,
             prune_every: c.prune_every,
             prune_opacity: c.prune_opacity,
+            sh_degree: 0,
+            densify_until: c.densify.until,
+            densify_from: c.densify.from,
+            densify_every: c.densify.every,
+            densify_grad: c.densify.grad_threshold,
+            percent_dense: c.densify.percent_dense,
+            max_gaussians: c.densify.max_gaussians,
+        }
+    }
+}
+
+impl JobParams {
+    /// The optimiser's settings these parameters ask for.
+    pub fn config(&self) -> Config {
+        Config {
+            iterations: self.iterations,
+            seed: self.seed,
+            prune_every: self.prune_every,
+            prune_opacity: self.prune_opacity,
+            densify: DensifyConfig {
+                until: self.densify_until,
+                from: self.densify_from,
+                every: self.densify_every,
+                grad_threshold: self.densify_grad,
+                percent_dense: self.percent_dense,
+                max_gaussians: self.max_gaussians,
+            },
+            ..Config::default()
         }
     }
 }
@@ -68,8 +111,10 @@ pub struct JobReport {
     pub out: PathBuf,
     /// Gaussians read.
     pub gaussians_in: usize,
-    /// Gaussians written (fewer after pruning).
+    /// Gaussians written (fewer after pruning, more after densification).
     pub gaussians_out: usize,
+    /// SH degree written.
+    pub sh_degree: usize,
     /// Iterations run.
     pub iterations: usize,
     /// Training image scale.
@@ -88,6 +133,11 @@ pub struct JobReport {
     pub final_loss_ema: Option<f64>,
     /// Exponential moving average (0.95) of the training PSNR at the end.
     pub final_psnr_ema: Option<f64>,
+    /// Mean training loss of each consecutive window of `loss_window` iterations (the
+    /// last window may be shorter): the smoothed loss curve.
+    pub loss_windows: Vec<f64>,
+    /// Iterations per entry of `loss_windows` (iterations / 20, at least 1).
+    pub loss_window: usize,
     /// The scene extent that scales the position learning rate.
     pub extent: f64,
     /// Seconds, reading and writing included.
@@ -106,19 +156,23 @@ pub fn run(job: &Job, params: &JobParams, on_step: OnStep<'_>) -> Result<JobRepo
     let cams = Cameras::read(&job.cameras)?;
     let views = load_views(&cams, &job.images, params.scale, &job.exclude)?;
     let (width, height) = views.first().map_or((0, 0), |v| (v.1.width, v.1.height));
-    let config = Config {
-        iterations: params.iterations,
-        seed: params.seed,
-        prune_every: params.prune_every,
-        prune_opacity: params.prune_opacity,
-        ..Config::default()
-    };
+    let config = params.config();
     let train_views = views.len();
-    let mut tr = Trainer::new(Params::from_gaussians(&template)?, views, config.clone())?;
+    let mut start = Params::from_gaussians(&template)?;
+    start.raise_sh_degree(params.sh_degree)?;
+    let mut tr = Trainer::new(start, views, config.clone())?;
     let (mut ema_loss, mut ema_psnr, mut first_loss) = (None::<f64>, None::<f64>, None);
+    let loss_window = (params.iterations / 20).max(1);
+    let (mut loss_windows, mut window_sum) = (Vec::new(), 0.0);
     for it in 1..=params.iterations {
         let s = tr.step();
         first_loss.get_or_insert(s.loss);
+        window_sum += s.loss;
+        if it % loss_window == 0 || it == params.iterations {
+            let len = (it - 1) % loss_window + 1;
+            loss_windows.push(window_sum / len as f64);
+            window_sum = 0.0;
+        }
         let ema = |e: Option<f64>, v: f64| Some(e.map_or(v, |e| 0.95 * e + 0.05 * v));
         ema_loss = ema(ema_loss, s.loss);
         ema_psnr = ema(ema_psnr, s.psnr);
@@ -128,10 +182,12 @@ pub fn run(job: &Job, params: &JobParams, on_step: OnStep<'_>) -> Result<JobRepo
         }
     }
     let gaussians_out = save(&tr, &template, &job.out)?;
+    let sh_degree = tr.params().sh_degree;
     Ok(JobReport {
         out: job.out.clone(),
         gaussians_in: template.len(),
         gaussians_out,
+        sh_degree,
         iterations: params.iterations,
         scale: params.scale,
         width,
@@ -141,6 +197,8 @@ pub fn run(job: &Job, params: &JobParams, on_step: OnStep<'_>) -> Result<JobRepo
         first_loss,
         final_loss_ema: ema_loss,
         final_psnr_ema: ema_psnr,
+        loss_windows,
+        loss_window,
         extent: tr.extent(),
         seconds: t0.elapsed().as_secs_f64(),
         config,

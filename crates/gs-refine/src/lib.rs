@@ -1,6 +1,9 @@
 //! Photometric refinement of 3D Gaussians on the CPU (issue 18): a short 3DGS optimisation
-//! without densification of the correspondence-initialised Gaussians (EDGS: a dense
-//! initialisation makes densification unnecessary).
+//! of the correspondence-initialised Gaussians. EDGS argues that a dense initialisation
+//! makes densification unnecessary, and it is off by default; but where no
+//! correspondences were found (plain walls, fur) the fixed set underfits even the training
+//! views, so 3DGS's clone/split densification ([`densify`]) and a raise of the SH degree
+//! ([`Params::raise_sh_degree`]) are available.
 //!
 //! # Design
 //!
@@ -31,7 +34,12 @@
 //!   σ = 1.5, zero padding. [`train`]: one view per iteration from a seeded shuffle per
 //!   epoch, Adam (β 0.9/0.999, ε 1e-15) with the 3DGS learning rates, position rate ×
 //!   scene extent decaying exponentially over the run; optional opacity pruning.
+//! * **Densification** ([`densify`]): 3DGS's rule on the mean NDC norm of each Gaussian's
+//!   screen-centre gradient over the views that drew it; small Gaussians cloned, large ones
+//!   split in two samples of their own distribution (seeded, drawn in index order, so the
+//!   bytes stay independent of the thread count), new Gaussians with fresh Adam moments.
 
+pub mod densify;
 pub mod error;
 pub mod images;
 pub mod job;
@@ -42,6 +50,7 @@ pub mod raster;
 pub mod train;
 pub mod views;
 
+pub use densify::DensifyConfig;
 pub use error::{RefineError, Result};
 pub use params::{Grads, Params};
 pub use raster::{backward, forward, ViewState};

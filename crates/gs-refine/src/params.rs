@@ -110,6 +110,31 @@ impl Params {
         &self.sh_rest[i * per..(i + 1) * per]
     }
 
+    /// Raises the SH degree to `degree` (never lowers it): the new higher coefficients
+    /// start at zero, so every Gaussian's colour is unchanged until they are trained
+    /// (3DGS trains up to degree 3 from SH-0 initialisations the same way).
+    pub fn raise_sh_degree(&mut self, degree: usize) -> Result<()> {
+        if degree > 3 {
+            return Err(RefineError::Config {
+                name: "sh_degree",
+                value: degree.to_string(),
+                expected: "0..=3",
+            });
+        }
+        if degree <= self.sh_degree {
+            return Ok(());
+        }
+        let (old, new) = (rest_coeffs(self.sh_degree) * 3, rest_coeffs(degree) * 3);
+        let mut rest = Vec::with_capacity(self.len() * new);
+        for i in 0..self.len() {
+            rest.extend_from_slice(&self.sh_rest[i * old..(i + 1) * old]);
+            rest.resize((i + 1) * new, 0.0);
+        }
+        self.sh_rest = rest;
+        self.sh_degree = degree;
+        Ok(())
+    }
+
     /// Keeps the Gaussians whose index is in `keep` (ascending).
     pub fn retain(&mut self, keep: &[u32]) {
         let per = rest_coeffs(self.sh_degree) * 3;

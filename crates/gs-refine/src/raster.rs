@@ -80,6 +80,15 @@ impl ViewState {
     pub fn visible(&self) -> usize {
         self.splats.len()
     }
+
+    /// For every Gaussian drawn by the last forward, its id and the gradient of the loss
+    /// with respect to its pixel centre (u, v) from the last [`backward`] (zero before).
+    pub fn drawn_center_grads(&self) -> impl Iterator<Item = (u32, [f64; 2])> + '_ {
+        self.splats.iter().enumerate().map(|(k, s)| {
+            let g = self.splat_grads.get(k).map_or([0.0; 2], |g| [g[0], g[1]]);
+            (s.id, g)
+        })
+    }
 }
 
 /// Projects every Gaussian in parallel and keeps the drawable ones in (depth, id) order.

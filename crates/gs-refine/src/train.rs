@@ -1,11 +1,12 @@
 //! The optimisation: one view per iteration in a seeded order, the 3DGS loss, Adam with the
-//! 3DGS learning rates and exponential position decay, no densification, optional
-//! opacity pruning.
+//! 3DGS learning rates and exponential position decay, optional 3DGS densification
+//! ([`crate::densify`]) and opacity pruning.
 
 use profuse_formats::rng::SplitMix64;
 use rayon::prelude::*;
 use splat_raster::ViewCamera;
 
+use crate::densify::{self, DensifyConfig, GradStats};
 use crate::error::{RefineError, Result};
 use crate::images::Target;
 use crate::loss::{loss_and_grad, psnr};
@@ -61,8 +62,10 @@ pub struct Config {
     /// Remove Gaussians whose opacity is below `prune_opacity` every this many iterations
     /// (0: never).
     pub prune_every: usize,
-    /// Opacity threshold of the pruning (3DGS: 0.005).
+    /// Opacity threshold of the pruning and of the densification's pruning (3DGS: 0.005).
     pub prune_opacity: f64,
+    /// Adaptive density control (off unless `densify.until > 0`).
+    pub densify: DensifyConfig,
 }
 
 impl Default for Config {
@@ -74,6 +77,7 @@ impl Default for Config {
             lr: LearningRates::default(),
             prune_every: 0,
             prune_opacity: 0.005,
+            densify: DensifyConfig::default(),
         }
     }
 }
@@ -126,11 +130,16 @@ impl Moments {
             });
     }
 
-    fn retain(&mut self, keep: &[u32], per: usize) {
+    /// Keeps the entries of the Gaussians in `keep` (`per` values each), then appends
+    /// zero moments for `added` new Gaussians (3DGS: new tensors start with fresh state).
+    fn retain(&mut self, keep: &[u32], per: usize, added: usize) {
         let pick = |x: &Vec<f32>| {
-            keep.iter()
+            let mut out: Vec<f32> = keep
+                .iter()
                 .flat_map(|&i| x[i as usize * per..(i as usize + 1) * per].iter().copied())
-                .collect()
+                .collect();
+            out.resize(out.len() + added * per, 0.0);
+            out
         };
         self.m = pick(&self.m);
         self.v = pick(&self.v);
@@ -150,14 +159,22 @@ pub struct StepStats {
     pub psnr: f64,
     /// Gaussians now.
     pub gaussians: usize,
+    /// Whether this iteration densified.
+    pub densified: bool,
 }
 
 /// A refinement in progress.
 #[derive(Debug)]
 pub struct Trainer {
     params: Params,
-    /// Input index of every current Gaussian (pruning removes entries).
+    /// Input index of every current Gaussian (pruning removes entries; a Gaussian made by
+    /// densification has its parent's).
     kept: Vec<u32>,
+    /// Positional gradient statistics since the last densification.
+    grad_stats: GradStats,
+    /// Draws the split samples (separate from the view order, so that densification
+    /// settings do not change which views are visited).
+    densify_rng: SplitMix64,
     cams: Vec<(usize, ViewCamera)>,
     targets: Vec<Target>,
     config: Config,
@@ -213,6 +230,8 @@ impl Trainer {
         Ok(Trainer {
             grads: Grads::zeros(&params),
             kept: (0..n as u32).collect(),
+            grad_stats: GradStats::new(if config.densify.until > 0 { n } else { 0 }),
+            densify_rng: SplitMix64::new(config.seed ^ 0xD3A5_1F7E_0000_0001),
             params,
             extent: cameras_extent(&only),
             cams,
@@ -285,8 +304,16 @@ impl Trainer {
             &self.dl,
             &mut self.grads,
         );
+        if self.config.densify.accumulating(self.step + 1) {
+            self.grad_stats
+                .add_view(w, h, self.state.drawn_center_grads());
+        }
         self.apply();
         self.step += 1;
+        let densified = self.config.densify.due(self.step) && self.step < self.config.iterations;
+        if densified {
+            self.densify();
+        }
         let every = self.config.prune_every;
         if every > 0 && self.step.is_multiple_of(every) && self.step < self.config.iterations {
             self.prune();
@@ -297,7 +324,38 @@ impl Trainer {
             loss: out.loss,
             psnr: psnr(out.mse),
             gaussians: self.params.len(),
+            densified,
         }
+    }
+
+    /// One 3DGS densification from the gradients gathered since the last one: clone or
+    /// split the under-reconstructing Gaussians, drop the nearly transparent ones, restart
+    /// the statistics.
+    pub fn densify(&mut self) -> densify::Plan {
+        let plan = densify::plan(
+            &self.params,
+            &self.grad_stats,
+            &self.config.densify,
+            self.extent,
+            self.config.prune_opacity,
+            &mut self.densify_rng,
+        );
+        let added = plan.children.len();
+        let per = [3, 3, 4, 1, 3, rest_coeffs(self.params.sh_degree) * 3];
+        for (m, p) in self.moments.iter_mut().zip(per) {
+            m.retain(&plan.keep, p, added);
+        }
+        self.params = densify::apply(&self.params, &plan);
+        let kept = &self.kept;
+        self.kept = plan
+            .keep
+            .iter()
+            .map(|&i| kept[i as usize])
+            .chain(plan.children.iter().map(|c| kept[c.parent as usize]))
+            .collect();
+        self.grads = Grads::zeros(&self.params);
+        self.grad_stats = GradStats::new(self.params.len());
+        plan
     }
 
     fn apply(&mut self) {
@@ -342,11 +400,18 @@ impl Trainer {
         }
         let per = [3, 3, 4, 1, 3, rest_coeffs(self.params.sh_degree) * 3];
         for (m, p) in self.moments.iter_mut().zip(per) {
-            m.retain(&keep, p);
+            m.retain(&keep, p, 0);
         }
         self.params.retain(&keep);
         self.kept = keep.iter().map(|&i| self.kept[i as usize]).collect();
         self.grads = Grads::zeros(&self.params);
+        if !self.grad_stats.sum.is_empty() {
+            let stats = &self.grad_stats;
+            self.grad_stats = GradStats {
+                sum: keep.iter().map(|&i| stats.sum[i as usize]).collect(),
+                count: keep.iter().map(|&i| stats.count[i as usize]).collect(),
+            };
+        }
     }
 
     /// Renders training view index `k` (into the trainer's cameras) and returns the loss
@@ -368,6 +433,7 @@ impl Trainer {
             loss: out.loss,
             psnr: psnr(out.mse),
             gaussians: self.params.len(),
+            densified: false,
         }
     }
 

@@ -430,6 +430,7 @@ fn gs_refine_stage_runs_between_gs_init_and_warp_graph_when_configured() {
         .with_overrides(&[
             "gs_refine.iterations=6".into(),
             "gs_refine.scale=1.0".into(),
+            "gs_refine.sh_degree=1".into(),
         ])
         .unwrap();
     let until = RunOptions {
@@ -446,6 +447,12 @@ fn gs_refine_stage_runs_between_gs_init_and_warp_graph_when_configured() {
     let report = &s.stages[1].report;
     assert_eq!(report["iterations"], 6);
     assert_eq!(report["train_views"], 4);
+    // The SH raise reaches the file every later stage reads; one loss window per iteration.
+    assert_eq!((init.sh_degree, refined.sh_degree), (0, 1));
+    assert_eq!(report["sh_degree"], 1);
+    assert_eq!(report["loss_window"], 1);
+    assert_eq!(report["loss_windows"].as_array().map(Vec::len), Some(6));
+    assert_eq!(report["loss_windows"][0], report["first_loss"]);
 
     let all = run(dir.path(), &config, &RunOptions::default(), &|_| {}).unwrap();
     let stages: Vec<&str> = all.stages.iter().map(|l| l.stage.as_str()).collect();

@@ -115,9 +115,36 @@ struct RunArgs {
     /// Remove Gaussians with opacity below --prune-opacity every N iterations (0: never).
     #[arg(long, default_value_t = 0)]
     prune_every: usize,
-    /// Opacity threshold of the pruning.
+    /// Opacity threshold of the pruning (and of the densification's pruning).
     #[arg(long, default_value_t = 0.005)]
     prune_opacity: f64,
+    /// Raise the SH degree to D (0..=3) before training; the new coefficients start at
+    /// zero (colours unchanged) and learn view-dependent colour. Never lowers the input's.
+    #[arg(long, default_value_t = 0)]
+    sh_degree: usize,
+    /// 3DGS densification up to iteration N (0: none): every --densify-every iterations
+    /// from --densify-from, Gaussians whose mean NDC positional gradient reaches
+    /// --densify-grad are cloned (largest scale <= --percent-dense x scene extent) or split
+    /// in two at 1/1.6 of the scale; those below --prune-opacity are removed.
+    #[arg(long, default_value_t = 0)]
+    densify_until: usize,
+    /// First iteration that densifies.
+    #[arg(long, default_value_t = 500)]
+    densify_from: usize,
+    /// Densify every N iterations.
+    #[arg(long, default_value_t = 100)]
+    densify_every: usize,
+    /// Mean NDC positional gradient norm at which a Gaussian is densified (3DGS: 0.0002).
+    #[arg(long, default_value_t = 0.0002)]
+    densify_grad: f64,
+    /// Largest scale, as a share of the scene extent, up to which a Gaussian is cloned
+    /// rather than split (3DGS: 0.01).
+    #[arg(long, default_value_t = 0.01)]
+    percent_dense: f64,
+    /// Densification never grows the scene past N Gaussians (0: no cap); the candidates
+    /// with the largest gradients go first.
+    #[arg(long, default_value_t = 0)]
+    max_gaussians: usize,
     /// Worker threads (default: rayon's); results do not depend on it.
     #[arg(long)]
     threads: Option<usize>,
@@ -174,6 +201,13 @@ fn refine(a: RunArgs, quiet: bool) -> Result<Value, BoxError> {
         seed: a.seed,
         prune_every: a.prune_every,
         prune_opacity: a.prune_opacity,
+        sh_degree: a.sh_degree,
+        densify_until: a.densify_until,
+        densify_from: a.densify_from,
+        densify_every: a.densify_every,
+        densify_grad: a.densify_grad,
+        percent_dense: a.percent_dense,
+        max_gaussians: a.max_gaussians,
     };
     let bar = progress_bar(chatty(quiet), a.iterations as u64, "gs-refine", "it");
     let report = job::run(&job, &params, &mut |it, loss, psnr| {
