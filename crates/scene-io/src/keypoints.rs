@@ -13,7 +13,10 @@
 //! * **Lens distortion.** When the cameras carry `distortion`, both keypoints of a match are
 //!   undistorted ([`crate::undistort`]) into the pinhole camera with the same intrinsics,
 //!   so everything downstream is pinhole; a match either of whose points cannot be
-//!   undistorted (beyond the model's fold) is dropped and counted.
+//!   undistorted (beyond the model's fold) is dropped and counted. With `target` cameras
+//!   (the cropped pinhole cameras of `undistort --crop`), the points are expressed in
+//!   those cameras' pixels instead, and a match either of whose points falls outside its
+//!   target image is dropped and counted.
 //! * **Certainty.** Keypoint matchers give none, so every match gets 1.
 //! * Pairs appear in file-name order; rows keep their order within a file.
 //! * No pair file naming two views (every file skipped, or none given) is an error, not
@@ -41,6 +44,10 @@ pub struct KeypointOptions {
     pub integer_centres: bool,
     /// Undistort with the cameras' lens model when they have one.
     pub undistort: bool,
+    /// Pinhole cameras (same views, same order) whose pixels the output is in, e.g. the
+    /// cropped cameras of `undistort --crop`; `None`: the pinhole camera with the input's
+    /// intrinsics.
+    pub target: Option<Cameras>,
 }
 
 impl Default for KeypointOptions {
@@ -50,6 +57,7 @@ impl Default for KeypointOptions {
             key_j: "kpts_j".into(),
             integer_centres: true,
             undistort: true,
+            target: None,
         }
     }
 }
@@ -63,6 +71,8 @@ pub struct KeypointReport {
     pub matches: usize,
     /// Matches dropped because a point could not be undistorted.
     pub dropped_undistort: usize,
+    /// Matches dropped because a point fell outside its target camera's image.
+    pub dropped_outside: usize,
     /// Whether the keypoints were undistorted.
     pub undistorted: bool,
     /// Files skipped, with the reason.
@@ -77,6 +87,19 @@ pub fn import_keypoint_pairs(
     opts: &KeypointOptions,
 ) -> Result<(SparseMatches, KeypointReport)> {
     let stems = view_stems(cameras, cameras_label)?;
+    if let Some(t) = &opts.target {
+        if t.len() != cameras.len() {
+            return Err(invalid(
+                cameras_label,
+                "target cameras",
+                format!(
+                    "{} views, but the target cameras have {}",
+                    cameras.len(),
+                    t.len()
+                ),
+            ));
+        }
+    }
     let mut files = files.to_vec();
     files.sort();
     let mut report = KeypointReport {
@@ -107,10 +130,16 @@ pub fn import_keypoint_pairs(
             let a = to_pinhole(cameras, vi, a, opts);
             let b = to_pinhole(cameras, vj, b, opts);
             match (a, b) {
-                (Some(a), Some(b)) => {
-                    points_i.push(a);
-                    points_j.push(b);
-                }
+                (Some(a), Some(b)) => match (
+                    in_target(cameras, opts, vi, a),
+                    in_target(cameras, opts, vj, b),
+                ) {
+                    (Some(a), Some(b)) => {
+                        points_i.push(a);
+                        points_j.push(b);
+                    }
+                    _ => report.dropped_outside += 1,
+                },
                 _ => report.dropped_undistort += 1,
             }
         }
@@ -229,13 +258,27 @@ fn read_pair(file: &Path, opts: &KeypointOptions) -> Result<KeypointRows> {
     Ok((ki, kj))
 }
 
+/// A point of view `v`'s pinhole camera (the input's intrinsics) in the pixels of the
+/// target camera, `None` outside its image; unchanged without target cameras.
+fn in_target(cameras: &Cameras, opts: &KeypointOptions, v: usize, p: [f64; 2]) -> Option<[f32; 2]> {
+    let Some(t) = &opts.target else {
+        return Some(p.map(|x| x as f32));
+    };
+    let [fx, fy, cx, cy] = cameras.intrinsics[v];
+    let n = [(p[0] - cx) / fx, (p[1] - cy) / fy];
+    let [tfx, tfy, tcx, tcy] = t.intrinsics[v];
+    let [w, h] = t.image_size[v].map(f64::from);
+    let q = [tfx * n[0] + tcx, tfy * n[1] + tcy];
+    (q[0] >= 0.0 && q[1] >= 0.0 && q[0] <= w && q[1] <= h).then(|| q.map(|x| x as f32))
+}
+
 /// A keypoint in SPEC.md pixel coordinates of the pinhole camera of view `v`.
 fn to_pinhole(
     cameras: &Cameras,
     v: usize,
     p: [f64; 2],
     opts: &KeypointOptions,
-) -> Option<[f32; 2]> {
+) -> Option<[f64; 2]> {
     let shift = if opts.integer_centres { 0.5 } else { 0.0 };
     let (u, w) = (p[0] + shift, p[1] + shift);
     let [u, w] = match (&cameras.distortion, opts.undistort) {
@@ -244,5 +287,5 @@ fn to_pinhole(
         }
         _ => [u, w],
     };
-    Some([u as f32, w as f32])
+    Some([u, w])
 }

@@ -1856,7 +1856,7 @@ fn undistort_scene_writes_pinhole_cameras_and_resampled_images() {
         ..Default::default()
     };
     let out = dir.path().join("out");
-    let (pin, report) = undistort_scene(&cams, dir.path(), &out).unwrap();
+    let (pin, report) = undistort_scene(&cams, dir.path(), &out, false).unwrap();
     assert_eq!(report.images, 1);
     assert!(pin.distortion.is_none());
     assert_eq!(pin.image_names, vec!["images/a.png".to_string()]);
@@ -1879,4 +1879,205 @@ fn undistort_scene_writes_pinhole_cameras_and_resampled_images() {
             "{x},{y}: {p:?} vs v {v}"
         );
     }
+}
+
+/// Whether output pixel (x, y) of view 0's undistorted image has a source in the photo.
+fn has_source(c: &Cameras, x: u32, y: u32) -> bool {
+    let [u, v] = scene_io::undistort::distort_pixel(
+        &c.intrinsics[0],
+        &c.distortion.as_ref().map_or([0.0; 4], |d| d[0]),
+        [f64::from(x) + 0.5, f64::from(y) + 0.5],
+    );
+    let [w, h] = c.image_size[0].map(f64::from);
+    u >= 0.0 && v >= 0.0 && u <= w && v <= h
+}
+
+fn one_camera(w: u32, h: u32, lens: [f64; 4]) -> Cameras {
+    Cameras {
+        image_names: vec!["images/a.png".into()],
+        image_size: vec![[w, h]].into(),
+        intrinsics: vec![[
+            0.8 * f64::from(w),
+            0.8 * f64::from(w),
+            0.47 * f64::from(w),
+            0.52 * f64::from(h),
+        ]]
+        .into(),
+        world_to_camera: vec![[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]].into(),
+        distortion: Some(vec![lens].into()),
+        ..Default::default()
+    }
+}
+
+#[test]
+fn crop_rectangle_holds_only_pixels_with_a_source_and_is_near_the_largest() {
+    use scene_io::undistort::valid_rect;
+    // Pincushion lenses pull the undistorted border from outside the photo (a cut);
+    // a barrel lens samples only inside it (nothing to cut).
+    for (lens, cuts) in [
+        ([0.15, -0.02, 0.002, -0.001], true),
+        ([0.25, 0.05, -0.003, 0.002], true),
+        ([-0.2, 0.05, 0.0, 0.0], false),
+    ] {
+        let (w, h) = (72u32, 54u32);
+        let c = one_camera(w, h, lens);
+        let ok: Vec<Vec<bool>> = (0..h)
+            .map(|y| (0..w).map(|x| has_source(&c, x, y)).collect())
+            .collect();
+        let [x0, y0, x1, y1] = valid_rect(&c.intrinsics[0], &lens, [w, h]).unwrap();
+        // Every pixel inside has a source.
+        for y in y0..y1 {
+            for x in x0..x1 {
+                assert!(
+                    ok[y as usize][x as usize],
+                    "{lens:?}: ({x}, {y}) has no source"
+                );
+            }
+        }
+        // No side can grow: the next line out is off the image or holds a hole.
+        let line_ok = |xs: std::ops::Range<u32>, ys: std::ops::Range<u32>| {
+            ys.clone()
+                .all(|y| xs.clone().all(|x| ok[y as usize][x as usize]))
+        };
+        assert!(y0 == 0 || !line_ok(x0..x1, y0 - 1..y0));
+        assert!(y1 == h || !line_ok(x0..x1, y1..y1 + 1));
+        assert!(x0 == 0 || !line_ok(x0 - 1..x0, y0..y1));
+        assert!(x1 == w || !line_ok(x1..x1 + 1, y0..y1));
+        // Brute force: the largest all-valid rectangle by area, via a summed-area table.
+        let mut sat = vec![vec![0u32; w as usize + 1]; h as usize + 1];
+        for y in 0..h as usize {
+            for x in 0..w as usize {
+                sat[y + 1][x + 1] =
+                    sat[y][x + 1] + sat[y + 1][x] - sat[y][x] + u32::from(!ok[y][x]);
+            }
+        }
+        let holes =
+            |a: usize, b: usize, c: usize, d: usize| sat[d][c] + sat[b][a] - sat[b][c] - sat[d][a];
+        let mut best = 0;
+        for a in 0..w as usize {
+            for b in 0..h as usize {
+                for cc in a + 1..=w as usize {
+                    for d in b + 1..=h as usize {
+                        let area = (cc - a) * (d - b);
+                        if area > best && holes(a, b, cc, d) == 0 {
+                            best = area;
+                        }
+                    }
+                }
+            }
+        }
+        let area = ((x1 - x0) * (y1 - y0)) as usize;
+        eprintln!("{lens:?}: cut [{x0}, {y0}, {x1}, {y1}] area {area}, largest {best}");
+        assert_eq!(area < (w * h) as usize, cuts, "{lens:?}");
+        assert!(area as f64 >= 0.97 * best as f64, "{area} vs best {best}");
+    }
+    // The identity lens keeps the whole image.
+    let c = one_camera(20, 10, [0.0; 4]);
+    assert_eq!(
+        valid_rect(&c.intrinsics[0], &[0.0; 4], [20, 10]),
+        Some([0, 0, 20, 10])
+    );
+}
+
+#[test]
+fn cropped_undistortion_is_the_cut_of_the_full_one_with_a_moved_principal_point() {
+    use scene_io::undistort::undistort_scene;
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (72u32, 54u32);
+    let img = image::RgbImage::from_fn(w, h, |x, y| {
+        image::Rgb([(x * 3) as u8, (y * 4) as u8, ((x * y) % 251) as u8])
+    });
+    std::fs::create_dir_all(dir.path().join("images")).unwrap();
+    img.save(dir.path().join("images/a.png")).unwrap();
+    let cams = one_camera(w, h, [0.15, -0.02, 0.002, -0.001]);
+    let (full, _) = undistort_scene(&cams, dir.path(), &dir.path().join("full"), false).unwrap();
+    let (cut, report) = undistort_scene(&cams, dir.path(), &dir.path().join("cut"), true).unwrap();
+    let [x0, y0, x1, y1] = report.crops[0];
+    assert!(x0 > 0 && y0 > 0 && x1 < w && y1 < h, "{:?}", report.crops);
+    assert_eq!(cut.image_size[0], [x1 - x0, y1 - y0]);
+    let a = image::open(dir.path().join("full/images/a.png"))
+        .unwrap()
+        .to_rgb8();
+    let b = image::open(dir.path().join("cut/images/a.png"))
+        .unwrap()
+        .to_rgb8();
+    assert_eq!([b.width(), b.height()], [x1 - x0, y1 - y0]);
+    for y in 0..b.height() {
+        for x in 0..b.width() {
+            assert_eq!(b.get_pixel(x, y), a.get_pixel(x + x0, y + y0));
+            assert!(has_source(&cams, x + x0, y + y0));
+        }
+    }
+    // A point projects into the cut camera at its full-image pixel minus the cut's origin.
+    for p in [[0.1, -0.2, 2.0], [-0.3, 0.25, 3.0]] {
+        let (pf, pc) = (full.project(0, p), cut.project(0, p));
+        assert!((pf[0] - f64::from(x0) - pc[0]).abs() < 1e-12);
+        assert!((pf[1] - f64::from(y0) - pc[1]).abs() < 1e-12);
+    }
+}
+
+#[test]
+fn keypoints_land_in_the_cut_cameras_and_points_outside_are_dropped() {
+    use scene_io::keypoints::{import_keypoint_pairs, KeypointOptions};
+    use scene_io::undistort::{cropped, valid_rects};
+    let Some(json) = shared("fox/transforms.json") else {
+        return;
+    };
+    let (cams, _) = read_transforms(&json).unwrap();
+    let rects = valid_rects(&cams, "fox").unwrap();
+    let cut = cropped(&cams, &rects);
+    let [x0, y0, ..] = rects[0];
+    assert!(
+        x0 > 0 && y0 > 0,
+        "the fox lens leaves a border: {:?}",
+        rects[0]
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let stem = |v: usize| {
+        Path::new(&cams.image_names[v])
+            .file_stem()
+            .unwrap()
+            .to_string_lossy()
+            .into_owned()
+    };
+    let file = dir.path().join(format!("{}_{}.npz", stem(0), stem(1)));
+    // OpenCV keypoints: one in the middle, one at the top-left corner of the photo (its
+    // undistorted position lies in the cut-away border).
+    let ki = [[500.0, 900.0], [1.0, 1.0], [700.0, 300.0]];
+    let kj = [[510.0, 880.0], [520.0, 870.0], [1.0, 1.0]];
+    write_pair_npz(&file, ["kpts_i", "kpts_j"], [&ki, &kj]);
+    let files = std::slice::from_ref(&file);
+    let (plain, _) =
+        import_keypoint_pairs(files, &cams, "cams", &KeypointOptions::default()).unwrap();
+    let opts = KeypointOptions {
+        target: Some(cut.clone()),
+        ..Default::default()
+    };
+    let (m, report) = import_keypoint_pairs(files, &cams, "cams", &opts).unwrap();
+    assert_eq!((report.matches, report.dropped_outside), (1, 2));
+    assert_eq!(plain.points_i.len(), 3);
+    let shift = |p: [f32; 2], r: [u32; 4]| [p[0] - r[0] as f32, p[1] - r[1] as f32];
+    let (gi, gj) = (m.points_i[0], m.points_j[0]);
+    let (wi, wj) = (
+        shift(plain.points_i[0], rects[0]),
+        shift(plain.points_j[0], rects[1]),
+    );
+    for (g, w) in [(gi, wi), (gj, wj)] {
+        assert!(
+            (g[0] - w[0]).abs() < 1e-3 && (g[1] - w[1]).abs() < 1e-3,
+            "{g:?} vs {w:?}"
+        );
+    }
+    // Target cameras of another scene are a typed error.
+    let mut short = cut.clone();
+    short.image_names.truncate(1);
+    let bad = KeypointOptions {
+        target: Some(scene_io::undistort::cropped(
+            &one_camera(10, 10, [0.0; 4]),
+            &[[0, 0, 10, 10]],
+        )),
+        ..Default::default()
+    };
+    let err = import_keypoint_pairs(files, &cams, "cams", &bad).unwrap_err();
+    assert!(err.to_string().contains("target cameras"), "{err}");
 }

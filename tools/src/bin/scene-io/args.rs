@@ -167,6 +167,11 @@ pub enum Command {
         /// Keep distorted keypoints even when the cameras have a lens model.
         #[arg(long)]
         no_undistort: bool,
+        /// Express the keypoints in these pinhole cameras' pixels (same views, same order),
+        /// e.g. the cameras `undistort --crop` wrote; matches with a point outside its
+        /// image are dropped (counted as dropped_outside).
+        #[arg(long)]
+        pinhole_cameras: Option<PathBuf>,
     },
     /// Undistort a scene's images with its cameras' OpenCV lens model: writes
     /// OUT_DIR/images/<stem>.png and OUT_DIR/cameras.safetensors (pinhole, same intrinsics).
@@ -184,5 +189,11 @@ pub enum Command {
         /// images undistorted elsewhere, or stages that need no pixels.
         #[arg(long)]
         cameras_only: bool,
+        /// Cut each undistorted image to the largest rectangle whose every pixel has a
+        /// source in the photo (no black border; COLMAP's undistorter does the same) and
+        /// move the principal point with the cut. Keypoints must then be imported with
+        /// `keypoints --pinhole-cameras OUT_DIR/cameras.safetensors`.
+        #[arg(long)]
+        crop: bool,
     },
 }

@@ -18,7 +18,7 @@ use scene_io::scannet::{
     align_mesh, read_axis_alignment, read_scannet_labels_ply, read_scannet_npy,
 };
 use scene_io::transforms::read_transforms;
-use scene_io::undistort::undistort_scene;
+use scene_io::undistort::{cropped, undistort_scene, valid_rects, UndistortReport};
 use serde_json::{json, Map, Value};
 
 mod args;
@@ -130,14 +130,17 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             key_j,
             corner_origin,
             no_undistort,
+            pinhole_cameras,
         } => {
             let cams = Cameras::read(&cameras)?;
+            let target = pinhole_cameras.as_deref().map(Cameras::read).transpose()?;
             let files = npz_files(&inputs)?;
             let options = KeypointOptions {
                 key_i,
                 key_j,
                 integer_centres: !corner_origin,
                 undistort: !no_undistort,
+                target,
             };
             let label = cameras.display().to_string();
             let (mut matches, report) = import_keypoint_pairs(&files, &cams, &label, &options)?;
@@ -150,13 +153,23 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             scene_dir,
             out_dir,
             cameras_only,
+            crop,
         } => {
             let cams = Cameras::read(&cameras)?;
             let (mut pinhole, report) = if cameras_only {
                 std::fs::create_dir_all(&out_dir)?;
-                (scene_io::undistort::pinhole(&cams), Default::default())
+                if crop {
+                    let rects = valid_rects(&cams, &cameras.display().to_string())?;
+                    let report = UndistortReport {
+                        crops: rects.clone(),
+                        ..Default::default()
+                    };
+                    (cropped(&cams, &rects), report)
+                } else {
+                    (scene_io::undistort::pinhole(&cams), Default::default())
+                }
             } else {
-                undistort_scene(&cams, &scene_dir, &out_dir)?
+                undistort_scene(&cams, &scene_dir, &out_dir, crop)?
             };
             stamp(&mut pinhole.extra, "undistort");
             let out = out_dir.join("cameras.safetensors");
