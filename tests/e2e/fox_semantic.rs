@@ -74,7 +74,7 @@ fn fox_semantic_quick_selects_the_fox_in_held_out_views() {
             .unwrap();
     for (view, [bx0, by0, bx1, by1]) in FOX_BOXES {
         let cut: Vec<u32> = (0..4)
-            .map(|i| undistort["crops"][view][i].as_u64().unwrap() as u32)
+            .map(|i| undistort["crops"][view as usize][i].as_u64().unwrap() as u32)
             .collect();
         let (w, h) = (cut[2] - cut[0], cut[3] - cut[1]);
         assert!(w > 1000 && h > 1850, "view {view}: cut {cut:?}");
