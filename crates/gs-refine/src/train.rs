@@ -341,7 +341,7 @@ impl Trainer {
             &mut self.densify_rng,
         );
         let added = plan.children.len();
-        let per = [3, 3, 4, 1, 3, rest_coeffs(self.params.sh_degree) * 3];
+        let per = self.values_per_gaussian();
         for (m, p) in self.moments.iter_mut().zip(per) {
             m.retain(&plan.keep, p, added);
         }
@@ -386,6 +386,12 @@ impl Trainer {
         m[5].step(&mut p.sh_rest, &g.sh_rest, lr.sh_rest, t);
     }
 
+    /// Values per Gaussian of each Adam-moment tensor (means, log-scales, quaternions,
+    /// opacity logits, SH DC, higher SH).
+    fn values_per_gaussian(&self) -> [usize; 6] {
+        [3, 3, 4, 1, 3, rest_coeffs(self.params.sh_degree) * 3]
+    }
+
     /// Drops Gaussians below the opacity threshold (and their Adam moments).
     pub fn prune(&mut self) {
         let thr = self.config.prune_opacity;
@@ -398,7 +404,7 @@ impl Trainer {
         if keep.len() == self.params.len() {
             return;
         }
-        let per = [3, 3, 4, 1, 3, rest_coeffs(self.params.sh_degree) * 3];
+        let per = self.values_per_gaussian();
         for (m, p) in self.moments.iter_mut().zip(per) {
             m.retain(&keep, p, 0);
         }

@@ -696,15 +696,20 @@ fn refinement_lowers_the_loss_and_raises_psnr_on_a_tiny_synth_scene() {
     assert!(after > before + 5.0, "PSNR {before:.2} -> {after:.2} dB");
 }
 
+/// Runs `f` on a rayon pool of `threads` threads.
+fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    splat_raster::rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
 #[test]
 fn training_bytes_do_not_depend_on_the_thread_count() {
     let (truth, start) = synth_truth();
     let run = |threads: usize| {
-        let pool = splat_raster::rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        on_threads(threads, || {
             let config = Config {
                 iterations: 12,
                 seed: 4,
@@ -1027,11 +1032,7 @@ fn densification_grows_a_sparse_start_and_fits_better() {
 fn densified_training_bytes_do_not_depend_on_the_thread_count() {
     let (truth, sparse) = sparse_start();
     let run = |threads: usize| {
-        let pool = splat_raster::rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        on_threads(threads, || {
             let mut tr = Trainer::new(
                 sparse.clone(),
                 synth_views(&truth, 4),

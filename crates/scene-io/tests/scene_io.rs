@@ -1717,6 +1717,15 @@ fn write_pair_npz(path: &Path, keys: [&str; 2], rows: [&[[f64; 2]]; 2]) {
     zip.finish().unwrap();
 }
 
+/// The file stem of view `v`'s image (what keypoint-pair file names are made of).
+fn view_stem(c: &Cameras, v: usize) -> String {
+    Path::new(&c.image_names[v])
+        .file_stem()
+        .unwrap()
+        .to_string_lossy()
+        .into_owned()
+}
+
 /// Pinhole projection (no lens) in SPEC.md pixel coordinates.
 fn project_pinhole(c: &Cameras, v: usize, p: [f64; 3]) -> [f64; 2] {
     let q = c.project(v, p);
@@ -1755,13 +1764,7 @@ fn keypoint_pairs_are_shifted_undistorted_and_match_pinhole_projections_on_fox_c
     };
     let ki: Vec<[f64; 2]> = pts.iter().map(|&p| opencv(vi, p)).collect();
     let kj: Vec<[f64; 2]> = pts.iter().map(|&p| opencv(vj, p)).collect();
-    let stem = |v: usize| {
-        Path::new(&cams.image_names[v])
-            .file_stem()
-            .unwrap()
-            .to_string_lossy()
-            .into_owned()
-    };
+    let stem = |v: usize| view_stem(&cams, v);
     let file = dir.path().join(format!("{}_{}.npz", stem(vi), stem(vj)));
     write_pair_npz(&file, ["kpts_i", "kpts_j"], [&ki, &kj]);
     // A pair naming a view the cameras lack is skipped, not an error.
@@ -2033,13 +2036,7 @@ fn keypoints_land_in_the_cut_cameras_and_points_outside_are_dropped() {
         rects[0]
     );
     let dir = tempfile::tempdir().unwrap();
-    let stem = |v: usize| {
-        Path::new(&cams.image_names[v])
-            .file_stem()
-            .unwrap()
-            .to_string_lossy()
-            .into_owned()
-    };
+    let stem = |v: usize| view_stem(&cams, v);
     let file = dir.path().join(format!("{}_{}.npz", stem(0), stem(1)));
     // OpenCV keypoints: one in the middle, one at the top-left corner of the photo (its
     // undistorted position lies in the cut-away border).
