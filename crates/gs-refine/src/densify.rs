@@ -151,11 +151,10 @@ pub fn plan(
     rng: &mut SplitMix64,
 ) -> Plan {
     let n = p.len();
-    let opacity = |i: usize| 1.0 / (1.0 + (-f64::from(p.opacity_logits[i])).exp());
     let mut candidates: Vec<u32> = (0..n as u32)
         .filter(|&i| {
             let i = i as usize;
-            stats.mean(i) >= cfg.grad_threshold && opacity(i) >= prune_opacity
+            stats.mean(i) >= cfg.grad_threshold && p.opacity(i) >= prune_opacity
         })
         .collect();
     if cfg.max_gaussians > 0 {
@@ -210,7 +209,7 @@ pub fn plan(
         }
     }
     for (i, r) in removed.iter_mut().enumerate() {
-        if !*r && opacity(i) < prune_opacity {
+        if !*r && p.opacity(i) < prune_opacity {
             *r = true;
             out.pruned += 1;
         }
@@ -229,8 +228,7 @@ fn normal(rng: &mut SplitMix64) -> f64 {
 /// Applies `plan` to `p`: the kept Gaussians in order, then the children (copies of their
 /// parents with their own mean and log-scales).
 pub fn apply(p: &Params, plan: &Plan) -> Params {
-    let mut out = p.clone();
-    out.retain(&plan.keep);
+    let mut out = p.subset(&plan.keep);
     let per = rest_coeffs(p.sh_degree) * 3;
     for c in &plan.children {
         let i = c.parent as usize;

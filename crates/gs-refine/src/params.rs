@@ -135,22 +135,36 @@ impl Params {
         Ok(())
     }
 
+    /// Opacity of Gaussian `i`: the sigmoid of its logit.
+    pub fn opacity(&self, i: usize) -> f64 {
+        1.0 / (1.0 + (-f64::from(self.opacity_logits[i])).exp())
+    }
+
     /// Keeps the Gaussians whose index is in `keep` (ascending).
     pub fn retain(&mut self, keep: &[u32]) {
+        *self = self.subset(keep);
+    }
+
+    /// The Gaussians whose index is in `keep`, in that order.
+    pub fn subset(&self, keep: &[u32]) -> Params {
         let per = rest_coeffs(self.sh_degree) * 3;
-        let pick = |v: &mut Vec<[f32; 3]>| *v = keep.iter().map(|&i| v[i as usize]).collect();
-        pick(&mut self.means);
-        pick(&mut self.log_scales);
-        pick(&mut self.sh_dc);
-        self.rotations = keep.iter().map(|&i| self.rotations[i as usize]).collect();
-        self.opacity_logits = keep
-            .iter()
-            .map(|&i| self.opacity_logits[i as usize])
-            .collect();
-        self.sh_rest = keep
-            .iter()
-            .flat_map(|&i| self.sh_rest[i as usize * per..(i as usize + 1) * per].to_vec())
-            .collect();
+        let pick = |v: &[[f32; 3]]| keep.iter().map(|&i| v[i as usize]).collect();
+        Params {
+            means: pick(&self.means),
+            log_scales: pick(&self.log_scales),
+            sh_dc: pick(&self.sh_dc),
+            rotations: keep.iter().map(|&i| self.rotations[i as usize]).collect(),
+            opacity_logits: keep
+                .iter()
+                .map(|&i| self.opacity_logits[i as usize])
+                .collect(),
+            sh_rest: keep
+                .iter()
+                .flat_map(|&i| &self.sh_rest[i as usize * per..(i as usize + 1) * per])
+                .copied()
+                .collect(),
+            sh_degree: self.sh_degree,
+        }
     }
 }
 

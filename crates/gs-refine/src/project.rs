@@ -126,7 +126,7 @@ fn project_inner(
     let [tx0, tx1] = tile_range(u, tiles_x)?;
     let [ty0, ty1] = tile_range(v, tiles_y)?;
     let color = sh_color(g, i, campos, mean);
-    let opacity = 1.0 / (1.0 + (-f64::from(g.opacity_logits[i])).exp());
+    let opacity = g.opacity(i);
     Some((
         Proj {
             center: [u, v],

@@ -396,10 +396,7 @@ impl Trainer {
     pub fn prune(&mut self) {
         let thr = self.config.prune_opacity;
         let keep: Vec<u32> = (0..self.params.len() as u32)
-            .filter(|&i| {
-                let l = f64::from(self.params.opacity_logits[i as usize]);
-                1.0 / (1.0 + (-l).exp()) >= thr
-            })
+            .filter(|&i| self.params.opacity(i as usize) >= thr)
             .collect();
         if keep.len() == self.params.len() {
             return;

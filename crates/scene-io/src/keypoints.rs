@@ -31,7 +31,8 @@ use serde::Serialize;
 use crate::error::{invalid, missing, Result};
 use crate::fsutil::show;
 use crate::npy::read_npz;
-use crate::undistort::undistort_pixel;
+use crate::undistort::{undistort_pixel, within};
+use profuse_formats::camera::{normalised_to_pixel, pixel_to_normalised};
 
 /// How to read the keypoint files.
 #[derive(Debug, Clone)]
@@ -264,12 +265,10 @@ fn in_target(cameras: &Cameras, opts: &KeypointOptions, v: usize, p: [f64; 2]) -
     let Some(t) = &opts.target else {
         return Some(p.map(|x| x as f32));
     };
-    let [fx, fy, cx, cy] = cameras.intrinsics[v];
-    let n = [(p[0] - cx) / fx, (p[1] - cy) / fy];
-    let [tfx, tfy, tcx, tcy] = t.intrinsics[v];
+    let n = pixel_to_normalised(&cameras.intrinsics[v], p);
+    let q = normalised_to_pixel(&t.intrinsics[v], n);
     let [w, h] = t.image_size[v].map(f64::from);
-    let q = [tfx * n[0] + tcx, tfy * n[1] + tcy];
-    (q[0] >= 0.0 && q[1] >= 0.0 && q[0] <= w && q[1] <= h).then(|| q.map(|x| x as f32))
+    within(q[0], q[1], w, h).then(|| q.map(|x| x as f32))
 }
 
 /// A keypoint in SPEC.md pixel coordinates of the pinhole camera of view `v`.

@@ -64,10 +64,16 @@ pub fn undistort_rgb(
     out
 }
 
+/// Whether pixel position `(u, v)` lies in `[0, width] × [0, height]` (false for NaN):
+/// where the undistortion samples a photo and where a keypoint counts as inside an image.
+pub(crate) fn within(u: f64, v: f64, width: f64, height: f64) -> bool {
+    u >= 0.0 && v >= 0.0 && u <= width && v <= height
+}
+
 /// Bilinear sample of an RGB8 image at pixel position `(u, v)` (centres at +0.5); `None`
 /// outside `[0, width] x [0, height]`.
 fn sample_bilinear(rgb: &[u8], width: usize, height: usize, u: f64, v: f64) -> Option<[u8; 3]> {
-    if !(u >= 0.0 && v >= 0.0 && u <= width as f64 && v <= height as f64) {
+    if !within(u, v, width as f64, height as f64) {
         return None;
     }
     let fx = (u - 0.5).clamp(0.0, (width - 1) as f64);
@@ -92,7 +98,7 @@ pub type Rect = [u32; 4];
 /// input (where [`undistort_rgb`] samples it).
 fn has_source(intrinsics: &[f64; 4], lens: &Lens, w: usize, h: usize, x: usize, y: usize) -> bool {
     let [u, v] = distort_pixel(intrinsics, lens, pixel_centre(x, y));
-    u >= 0.0 && v >= 0.0 && u <= w as f64 && v <= h as f64
+    within(u, v, w as f64, h as f64)
 }
 
 /// Summed-area table of the pixels without a source, for O(1) counts over rectangles.
