@@ -13,7 +13,9 @@
 //!   det Σ' <= 0; radius r = ceil(3 sqrt(λ_max)) with INRIA's `max(0.1, mid² − det)`;
 //!   colour from SH degrees 0..3 (INRIA constants, direction from the camera centre to the
 //!   mean, `max(0, · + 0.5)`); depth = camera z. The projection runs in `f64`; the
-//!   per-pixel blend in `f32`, like INRIA's kernel.
+//!   per-pixel blend in `f32`, like INRIA's kernel. A view projects its Gaussians 8 at a
+//!   time, lane by lane without branches (8 f64 lanes with AVX-512, 2 with SSE2): the same
+//!   IEEE operations as the one-Gaussian formula, so the same bits.
 //! * **Per pixel**, over the Gaussians of its tile in front-to-back order:
 //!   power = −½(a dx² + c dy²) − b dx dy (skip if > 0); α = min(0.99, o·exp(power)); skip
 //!   α < 1/255; if T(1 − α) < 1e-4 stop *before* this Gaussian (it is not recorded);

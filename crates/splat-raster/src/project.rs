@@ -8,6 +8,7 @@ use profuse_formats::{camera, Gaussians};
 use crate::camera::ViewCamera;
 use crate::error::{RasterError, Result};
 use crate::sh::eval_sh;
+use crate::simd::Level;
 use crate::{ALPHA_MIN, FRUSTUM_CLAMP, LOW_PASS, NEAR_PLANE, SIGMA_EXTENT, TILE};
 
 /// One Gaussian projected into one view, in double precision (INRIA's `preprocessCUDA`).
@@ -57,6 +58,12 @@ pub(crate) struct Prepared {
 
 /// [`Prepared::var_max`] of a Gaussian that is never drawn.
 const NEVER_DRAWN: f32 = -1.0;
+
+/// Whether a [`Prepared::var_max`] is not [`NEVER_DRAWN`] (not negative).
+#[inline(always)]
+fn may_be_drawn(var_max: f32) -> bool {
+    (var_max >= 0.0) | var_max.is_nan()
+}
 
 pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
     let n = g.len();
@@ -399,20 +406,27 @@ impl Splat {
 /// Projects Gaussians `ids` into `cam` and appends, in id order, the [`Splat`] of each one
 /// that [`project`] followed by [`Splat::new`] keeps: bit for bit the same values (the same
 /// operations in the same order; the unit tests compare the two paths), for less work:
-/// per-view constants are computed once, Gaussians that are never drawn are skipped
-/// before the camera transform, Gaussians far off the image are rejected by a
+/// per-view constants are computed once, Gaussians far off the image are rejected by a
 /// conservative bound before the EWA projection (see [`ViewConsts::surely_off_grid`]),
-/// degree-0 colours come from [`Prepared::color0`], and no [`Projected`] is built.
+/// degree-0 colours come from [`Prepared::color0`], no [`Projected`] is built, and the
+/// Gaussians go through the arithmetic [`BATCH`] at a time, lane by lane without branches
+/// (see [`ViewConsts::project_lanes`]), which the compiler turns into vector instructions:
+/// 8 lanes with AVX-512 where `level` has it, 2 with SSE2 otherwise. Every lane performs
+/// the IEEE double-precision operations of the scalar formula, so the width changes no bit.
 pub(crate) fn project_chunk(
     g: &Gaussians,
     prep: &Prepared,
     cam: &ViewCamera,
     campos: [f64; 3],
     ids: Range<usize>,
+    level: Level,
     out: &mut Vec<Splat>,
 ) {
-    project_chunk_with(&ViewConsts::new(cam), g, prep, campos, ids, out);
+    project_chunk_with(&ViewConsts::new(cam), g, prep, campos, ids, level, out);
 }
+
+/// Gaussians per batch of [`project_chunk`]: one AVX-512 vector of f64.
+const BATCH: usize = 8;
 
 /// [`project_chunk`] with its per-view constants given (the tests tamper with them).
 fn project_chunk_with(
@@ -421,17 +435,158 @@ fn project_chunk_with(
     prep: &Prepared,
     campos: [f64; 3],
     ids: Range<usize>,
+    level: Level,
     out: &mut Vec<Splat>,
 ) {
-    let means = &g.means[ids.clone()];
-    let var_max = &prep.var_max[ids.clone()];
-    for (k, (mean, &var)) in means.iter().zip(var_max).enumerate() {
-        // NEVER_DRAWN: Splat::new rejects it whatever the view.
-        if var < 0.0 {
-            continue;
+    let tail = match level {
+        Level::Portable => project_batches(view, g, prep, campos, ids.clone(), out),
+        // SAFETY: `Level::Avx512` is only made after `Level::detect` found AVX-512 F and DQ
+        // on this CPU, which is all `project_batches_avx512` needs.
+        #[cfg(target_arch = "x86_64")]
+        #[allow(unsafe_code)]
+        Level::Avx512 => unsafe { project_batches_avx512(view, g, prep, campos, ids.clone(), out) },
+    };
+    for i in tail..ids.end {
+        let mut lane = Lanes::<1>::default();
+        view.project_lanes(g, prep, i, &mut lane);
+        lane.emit(g, prep, campos, i, out);
+    }
+}
+
+/// [`project_batches`] compiled for AVX-512, where its lane loops become 8-lane vectors.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq")]
+fn project_batches_avx512(
+    view: &ViewConsts,
+    g: &Gaussians,
+    prep: &Prepared,
+    campos: [f64; 3],
+    ids: Range<usize>,
+    out: &mut Vec<Splat>,
+) -> usize {
+    project_batches(view, g, prep, campos, ids, out)
+}
+
+/// Projects the whole batches of `ids`; returns where the remainder (fewer than [`BATCH`]
+/// Gaussians) starts.
+#[inline(always)]
+fn project_batches(
+    view: &ViewConsts,
+    g: &Gaussians,
+    prep: &Prepared,
+    campos: [f64; 3],
+    ids: Range<usize>,
+    out: &mut Vec<Splat>,
+) -> usize {
+    let mut first = ids.start;
+    let mut lanes = Lanes::<BATCH>::default();
+    while first + BATCH <= ids.end {
+        // A batch of Gaussians that are never drawn (zero opacity) costs nothing.
+        if prep.var_max[first..first + BATCH]
+            .iter()
+            .any(|&v| may_be_drawn(v))
+        {
+            view.project_lanes(g, prep, first, &mut lanes);
+            lanes.emit(g, prep, campos, first, out);
         }
-        if let Some(splat) = view.splat(g, prep, campos, ids.start + k, *mean, var) {
-            out.push(splat);
+        first += BATCH;
+    }
+    first
+}
+
+/// What [`ViewConsts::project_lanes`] computes for `L` consecutive Gaussians, lane l for
+/// the l-th: whether [`project`] + [`Splat::new`] keep it, and the values of its
+/// [`Splat`] (meaningless in lanes that are not kept).
+#[derive(Debug, Clone, Copy)]
+struct Lanes<const L: usize> {
+    keep: [bool; L],
+    /// The f64 intermediates: centre, depth, 2D covariance, conic, radius.
+    u: [f64; L],
+    v: [f64; L],
+    z: [f64; L],
+    cov2d: [[f64; L]; 3],
+    conic: [[f64; L]; 3],
+    radius: [f64; L],
+    /// Tile range tx0, tx1, ty0, ty1.
+    tiles: [[u32; L]; 4],
+    /// The single-precision conic a, b, c, its det, 2 a tau and the inverse of a (0 when
+    /// the spans cannot be trusted).
+    abc: [[f32; L]; 3],
+    det: [f32; L],
+    two_a_tau: [f32; L],
+    inv_a: [f32; L],
+    /// Pixel rectangle x0, x1, y0, y1.
+    rect: [[u16; L]; 4],
+}
+
+impl<const L: usize> Default for Lanes<L> {
+    fn default() -> Self {
+        Lanes {
+            keep: [false; L],
+            u: [0.0; L],
+            v: [0.0; L],
+            z: [0.0; L],
+            cov2d: [[0.0; L]; 3],
+            conic: [[0.0; L]; 3],
+            radius: [0.0; L],
+            tiles: [[0; L]; 4],
+            abc: [[0.0; L]; 3],
+            det: [0.0; L],
+            two_a_tau: [0.0; L],
+            inv_a: [0.0; L],
+            rect: [[0; L]; 4],
+        }
+    }
+}
+
+impl<const L: usize> Lanes<L> {
+    /// Appends the [`Splat`] of every kept lane (Gaussian `first + l`), in lane order.
+    #[inline(always)]
+    fn emit(
+        &self,
+        g: &Gaussians,
+        prep: &Prepared,
+        campos: [f64; 3],
+        first: usize,
+        out: &mut Vec<Splat>,
+    ) {
+        for l in 0..L {
+            if !self.keep[l] {
+                continue;
+            }
+            let i = first + l;
+            let color = match prep.color0.get(i) {
+                Some(c) => *c,
+                None => sh_color(g, campos, i, g.means[i].map(f64::from)).map(|x| x as f32),
+            };
+            #[cfg(test)]
+            tests::trace(Projected {
+                id: i as u32,
+                center: [self.u[l], self.v[l]],
+                depth: self.z[l],
+                cov2d: self.cov2d.map(|c| c[l]),
+                conic: self.conic.map(|c| c[l]),
+                radius: self.radius[l],
+                tiles: self.tiles.map(|t| t[l]),
+                color: [0.0; 3], // compared as the splat's f32 colour
+                opacity: prep.opacity[i],
+            });
+            let [a, b, c] = self.abc.map(|v| v[l]);
+            out.push(Splat {
+                x: self.u[l] as f32,
+                y: self.v[l] as f32,
+                a,
+                b,
+                c,
+                opacity: prep.opacity[i] as f32,
+                color,
+                depth: self.z[l] as f32,
+                id: i as u32,
+                two_a_tau: self.two_a_tau[l],
+                det: self.det[l],
+                inv_a: self.inv_a[l],
+                rect: self.rect.map(|r| r[l]),
+            });
         }
     }
 }
@@ -521,152 +676,181 @@ impl ViewConsts {
     #[inline(always)]
     fn surely_off_grid(&self, u: f64, v: f64, z: f64, var: f32) -> bool {
         let [gw, gh] = self.grid;
-        // Gaussians centred on (or near) the grid are kept without the division below.
-        let off = u < -2.0 || v < -2.0 || u > gw + 2.0 || v > gh + 2.0;
-        off && {
-            let lambda_bound = self.cull_gain * f64::from(var) / (z * z) + 0.62;
-            let rb = SIGMA_EXTENT * lambda_bound.sqrt() + 2.0;
-            u + rb < 0.0 || u - rb > gw || v + rb < 0.0 || v - rb > gh
-        }
+        // Non-short-circuit `&` and `|`, so that a lane loop computes it without branches;
+        // the division is then done for Gaussians on the grid too, and ignored.
+        let off = (u < -2.0) | (v < -2.0) | (u > gw + 2.0) | (v > gh + 2.0);
+        let lambda_bound = self.cull_gain * f64::from(var) / (z * z) + 0.62;
+        let rb = SIGMA_EXTENT * lambda_bound.sqrt() + 2.0;
+        off & ((u + rb < 0.0) | (u - rb > gw) | (v + rb < 0.0) | (v - rb > gh))
     }
 
-    /// [`project`] then [`Splat::new`] for Gaussian `i` (mean `m`, [`Prepared::var_max`]
-    /// `var`), written out with the per-view constants.
+    /// [`project`] then [`Splat::new`] for Gaussians `first..first + L`, written out with
+    /// the per-view constants, lane by lane and without branches (every test is a lane of
+    /// `keep`; the values of a lane that is not kept are computed anyway and unused), so
+    /// that the loop over the lanes vectorises.
     #[inline(always)]
-    fn splat(
+    fn project_lanes<const L: usize>(
         &self,
         g: &Gaussians,
         prep: &Prepared,
-        campos: [f64; 3],
-        i: usize,
-        m: [f32; 3],
-        var: f32,
-    ) -> Option<Splat> {
-        let mean = m.map(f64::from);
+        first: usize,
+        out: &mut Lanes<L>,
+    ) {
+        let means = &g.means[first..first + L];
+        let var_max = &prep.var_max[first..first + L];
+        let cov3d = &prep.cov3d[first..first + L];
+        let taus = &prep.tau[first..first + L];
         let (r, t) = (&self.rotation, &self.translation);
-        let cam_axis = |a: usize| r[a][0] * mean[0] + r[a][1] * mean[1] + r[a][2] * mean[2] + t[a];
-        let z = cam_axis(2);
-        if z.is_nan() || z <= NEAR_PLANE {
-            return None;
-        }
-        let (px, py) = (cam_axis(0), cam_axis(1));
         let ([fx, fy], [cx, cy]) = (self.focal, self.principal);
-        let [u, v] = camera::project(&[fx, fy, cx, cy], [px, py, z]);
-        if self.surely_off_grid(u, v, z, var) {
-            return None;
-        }
+        for l in 0..L {
+            let var = var_max[l];
+            let mean = means[l].map(f64::from);
+            let cam_axis =
+                |a: usize| r[a][0] * mean[0] + r[a][1] * mean[1] + r[a][2] * mean[2] + t[a];
+            let z = cam_axis(2);
+            // NEVER_DRAWN (`Splat::new` rejects it whatever the view); `project`'s near
+            // plane (false for NaN).
+            let in_front = may_be_drawn(var) & (z > NEAR_PLANE);
+            let (px, py) = (cam_axis(0), cam_axis(1));
+            let [u, v] = camera::project(&[fx, fy, cx, cy], [px, py, z]);
+            let on_grid = !self.surely_off_grid(u, v, z, var);
 
-        // EWA, as in `project`.
-        let tx = (px / z).clamp(self.tan_x[0], self.tan_x[1]) * z;
-        let ty = (py / z).clamp(self.tan_y[0], self.tan_y[1]) * z;
-        let z2 = z * z;
-        let (j00, j02) = (fx / z, -fx * tx / z2);
-        let (j11, j12) = (fy / z, -fy * ty / z2);
-        let t0: [f64; 3] = std::array::from_fn(|b| j00 * r[0][b] + self.zero_r1[b] + j02 * r[2][b]);
-        let t1: [f64; 3] = std::array::from_fn(|b| self.zero_r0[b] + j11 * r[1][b] + j12 * r[2][b]);
-        let [sxx, sxy, sxz, syy, syz, szz] = prep.cov3d[i];
-        let sigma = [[sxx, sxy, sxz], [sxy, syy, syz], [sxz, syz, szz]];
-        let times_sigma = |t: &[f64; 3]| -> [f64; 3] {
-            std::array::from_fn(|b| t[0] * sigma[0][b] + t[1] * sigma[1][b] + t[2] * sigma[2][b])
-        };
-        let (ts0, ts1) = (times_sigma(&t0), times_sigma(&t1));
-        let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-        let ca = dot(&ts0, &t0) + LOW_PASS;
-        let cb = dot(&ts0, &t1);
-        let cc = dot(&ts1, &t1) + LOW_PASS;
-        let det = ca * cc - cb * cb;
-        // `project`'s test, in fewer instructions: `x <= MAX` is `x < inf` for every x,
-        // both false for NaN (and LLVM lowers `0 < det < inf` to integer class tests).
-        let regular = det > 0.0 && det <= f64::MAX && ca.abs() <= f64::MAX && cc.abs() <= f64::MAX;
-        if !regular {
-            return None;
-        }
-        let conic = [cc / det, -cb / det, ca / det];
-        let mid = 0.5 * (ca + cc);
-        let disc = (mid * mid - det).max(0.1).sqrt();
-        let lambda = (mid + disc).max(mid - disc);
-        let radius = ceil_non_negative(SIGMA_EXTENT * lambda.sqrt());
-        let [tx0, tx1] = tile_range(u, radius, self.tiles[0])?;
-        let [ty0, ty1] = tile_range(v, radius, self.tiles[1])?;
+            // EWA, as in `project`.
+            let tx = clamp(px / z, self.tan_x) * z;
+            let ty = clamp(py / z, self.tan_y) * z;
+            let z2 = z * z;
+            let (j00, j02) = (fx / z, -fx * tx / z2);
+            let (j11, j12) = (fy / z, -fy * ty / z2);
+            let t0: [f64; 3] =
+                std::array::from_fn(|b| j00 * r[0][b] + self.zero_r1[b] + j02 * r[2][b]);
+            let t1: [f64; 3] =
+                std::array::from_fn(|b| self.zero_r0[b] + j11 * r[1][b] + j12 * r[2][b]);
+            let [sxx, sxy, sxz, syy, syz, szz] = cov3d[l];
+            let sigma = [[sxx, sxy, sxz], [sxy, syy, syz], [sxz, syz, szz]];
+            let times_sigma = |t: &[f64; 3]| -> [f64; 3] {
+                std::array::from_fn(|b| {
+                    t[0] * sigma[0][b] + t[1] * sigma[1][b] + t[2] * sigma[2][b]
+                })
+            };
+            let (ts0, ts1) = (times_sigma(&t0), times_sigma(&t1));
+            let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+            let ca = dot(&ts0, &t0) + LOW_PASS;
+            let cb = dot(&ts0, &t1);
+            let cc = dot(&ts1, &t1) + LOW_PASS;
+            let det = ca * cc - cb * cb;
+            // `project`'s test, in fewer instructions: `x <= MAX` is `x < inf` for every x,
+            // both false for NaN.
+            let regular =
+                (det > 0.0) & (det <= f64::MAX) & (ca.abs() <= f64::MAX) & (cc.abs() <= f64::MAX);
+            let conic = [cc / det, -cb / det, ca / det];
+            let mid = 0.5 * (ca + cc);
+            let disc = max_bound(mid * mid - det, 0.1).sqrt();
+            let lambda = (mid + disc).max(mid - disc);
+            let radius = ceil_non_negative(SIGMA_EXTENT * lambda.sqrt());
+            let (tiles_x, [tx0, tx1]) = tile_lanes(u, radius, self.tiles[0]);
+            let (tiles_y, [ty0, ty1]) = tile_lanes(v, radius, self.tiles[1]);
 
-        // `Splat::new` (its opacity test is `var >= 0`, checked by the caller).
-        let [a, b, c] = conic.map(|x| x as f32);
-        let (x, y) = (u as f32, v as f32);
-        if ![x, y, a, b, c].iter().all(|v| v.is_finite()) {
-            return None;
+            // `Splat::new` (its opacity test is `var >= 0`, above).
+            let [a, b, c] = conic.map(|x| x as f32);
+            let (x, y) = (u as f32, v as f32);
+            let finite =
+                x.is_finite() & y.is_finite() & a.is_finite() & b.is_finite() & c.is_finite();
+            let tau = taus[l];
+            let det32 = a * c - b * b;
+            let two_a_tau = 2.0 * a * tau as f32;
+            let inv_a = 1.0 / a;
+            let spans = (a > 0.0)
+                & (det32 > 0.0)
+                & (det32 <= f32::MAX)
+                & (two_a_tau.abs() <= f32::MAX)
+                & (inv_a.abs() <= f32::MAX);
+            let slack = if spans { RECT_SLACK } else { 1.0 };
+            let ex = (2.0 * tau * ca).sqrt();
+            let ey = (2.0 * tau * cc).sqrt();
+            let (rect_x, [x0, x1]) = rect_lanes(u, ex, slack, tx0, tx1, self.width);
+            let (rect_y, [y0, y1]) = rect_lanes(v, ey, slack, ty0, ty1, self.height);
+
+            out.keep[l] =
+                in_front & on_grid & regular & tiles_x & tiles_y & finite & rect_x & rect_y;
+            out.u[l] = u;
+            out.v[l] = v;
+            out.z[l] = z;
+            out.cov2d[0][l] = ca;
+            out.cov2d[1][l] = cb;
+            out.cov2d[2][l] = cc;
+            for (o, c) in out.conic.iter_mut().zip(conic) {
+                o[l] = c;
+            }
+            out.radius[l] = radius;
+            for (o, t) in out.tiles.iter_mut().zip([tx0, tx1, ty0, ty1]) {
+                o[l] = t;
+            }
+            for (o, v) in out.abc.iter_mut().zip([a, b, c]) {
+                o[l] = v;
+            }
+            out.det[l] = det32;
+            out.two_a_tau[l] = two_a_tau;
+            out.inv_a[l] = if spans { inv_a } else { 0.0 };
+            for (o, v) in out.rect.iter_mut().zip([x0, x1, y0, y1]) {
+                o[l] = v;
+            }
         }
-        let tau = prep.tau[i];
-        let det = a * c - b * b;
-        let two_a_tau = 2.0 * a * tau as f32;
-        let inv_a = 1.0 / a;
-        let spans = a > 0.0
-            && det > 0.0
-            && det <= f32::MAX
-            && two_a_tau.abs() <= f32::MAX
-            && inv_a.abs() <= f32::MAX;
-        let slack = if spans { RECT_SLACK } else { 1.0 };
-        let ex = (2.0 * tau * ca).sqrt();
-        let ey = (2.0 * tau * cc).sqrt();
-        let [x0, x1] = rect_span(u, ex, slack, tx0, tx1, self.width)?;
-        let [y0, y1] = rect_span(v, ey, slack, ty0, ty1, self.height)?;
-        let color = match prep.color0.get(i) {
-            Some(c) => *c,
-            None => sh_color(g, campos, i, mean).map(|x| x as f32),
-        };
-        #[cfg(test)]
-        tests::trace(Projected {
-            id: i as u32,
-            center: [u, v],
-            depth: z,
-            cov2d: [ca, cb, cc],
-            conic,
-            radius,
-            tiles: [tx0, tx1, ty0, ty1],
-            color: [0.0; 3], // compared as the splat's f32 colour
-            opacity: prep.opacity[i],
-        });
-        Some(Splat {
-            x,
-            y,
-            a,
-            b,
-            c,
-            opacity: prep.opacity[i] as f32,
-            color,
-            depth: z as f32,
-            id: i as u32,
-            two_a_tau,
-            det,
-            inv_a: if spans { inv_a } else { 0.0 },
-            rect: [x0, x1, y0, y1],
-        })
+    }
+}
+
+/// `x.clamp(range[0], range[1])` for a range that is not NaN and ordered, written as
+/// selects (f64::clamp asserts the order on every call): NaN stays NaN.
+#[inline(always)]
+fn clamp(x: f64, range: [f64; 2]) -> f64 {
+    let x = if x < range[0] { range[0] } else { x };
+    if x > range[1] {
+        range[1]
+    } else {
+        x
     }
 }
 
 /// The inclusive tile range of [`project`] covered by `[c − radius, c + radius]`, `None`
-/// when it misses the `n` tiles; without its floors: with y = (c ± radius) / 16,
-/// floor(y) >= 0 ⟺ y >= 0 and floor(y) <= n − 1 ⟺ y < n (both false for NaN), and on
-/// the clamped values, which are >= 0, `as u32` truncates, i.e. floors.
-#[inline(always)]
+/// when it misses the `n` tiles ([`tile_lanes`]).
+#[cfg(test)]
 fn tile_range(c: f64, radius: f64, n: usize) -> Option<[u32; 2]> {
-    let lo = (c - radius) / TILE as f64;
-    let hi = (c + radius) / TILE as f64;
-    let in_grid = hi >= 0.0 && lo < n as f64;
-    if !in_grid {
-        return None;
-    }
-    Some([
-        max_bound(lo, 0.0) as u32,
-        min_bound(hi, (n - 1) as f64) as u32,
-    ])
+    let (hit, range) = tile_lanes(c, radius, n);
+    hit.then_some(range)
 }
 
-/// The pixel span of [`Splat::new`] along one axis, with its ceil and floor after the
-/// clamps rather than before: they commute with max/min against the integer bounds (NaN
-/// included: f64::max/min return the bound), and the clamped values lie in
-/// [0, size − 1] when the span is not empty, where `as u16` truncates exactly.
+/// [`project`]'s tile range without branches: whether `[c − radius, c + radius]` meets
+/// the `n` tiles, and the range (meaningless when it does not). Without its floors: with
+/// y = (c ± radius) / 16, floor(y) >= 0 ⟺ y >= 0 and floor(y) <= n − 1 ⟺ y < n (both false
+/// for NaN), and on the clamped values, which are >= 0, `as u32` truncates, i.e. floors.
 #[inline(always)]
+fn tile_lanes(c: f64, radius: f64, n: usize) -> (bool, [u32; 2]) {
+    let lo = (c - radius) / TILE as f64;
+    let hi = (c + radius) / TILE as f64;
+    let in_grid = (hi >= 0.0) & (lo < n as f64);
+    (
+        in_grid,
+        [
+            max_bound(lo, 0.0) as u32,
+            min_bound(hi, (n - 1) as f64) as u32,
+        ],
+    )
+}
+
+/// The pixel span of [`Splat::new`] along one axis, `None` when it is empty
+/// ([`rect_lanes`]).
+#[cfg(test)]
 fn rect_span(c: f64, e: f64, slack: f64, t0: u32, t1: u32, size: u32) -> Option<[u16; 2]> {
+    let (some, span) = rect_lanes(c, e, slack, t0, t1, size);
+    some.then_some(span)
+}
+
+/// The pixel span of [`Splat::new`] along one axis without branches: whether it is not
+/// empty, and the span (meaningless when it is). Its ceil and floor come after the clamps
+/// rather than before: they commute with max/min against the integer bounds (NaN
+/// included: f64::max/min return the bound), and the clamped values lie in [0, size − 1]
+/// when the span is not empty, where `as u16` truncates exactly.
+#[inline(always)]
+fn rect_lanes(c: f64, e: f64, slack: f64, t0: u32, t1: u32, size: u32) -> (bool, [u16; 2]) {
     let lo = max_bound(
         max_bound(c - e - 0.5 - slack, f64::from(t0) * TILE as f64),
         0.0,
@@ -678,17 +862,15 @@ fn rect_span(c: f64, e: f64, slack: f64, t0: u32, t1: u32, size: u32) -> Option<
         ),
         f64::from(size) - 1.0,
     );
-    // ceil(lo) <= floor(hi) needs lo <= hi; then 0 <= lo <= hi <= size − 1 < 2^15.
-    if lo > hi {
-        return None;
-    }
+    // ceil(lo) <= floor(hi) needs lo <= hi; then 0 <= lo <= hi <= size − 1 < 2^15 (and
+    // the increment below cannot wrap; where lo > hi its value is not used).
     let (lo_floor, hi_floor) = (lo as u16, hi as u16);
     let lo_ceil = if f64::from(lo_floor) < lo {
-        lo_floor + 1
+        lo_floor.wrapping_add(1)
     } else {
         lo_floor
     };
-    (lo_ceil <= hi_floor).then_some([lo_ceil, hi_floor])
+    ((lo <= hi) & (lo_ceil <= hi_floor), [lo_ceil, hi_floor])
 }
 
 /// `x.max(bound)` for a bound that is not NaN, in one instruction (maxsd) rather than five:
@@ -1042,15 +1224,22 @@ mod tests {
         tamper: impl Fn(&mut ViewConsts),
     ) -> Vec<String> {
         let mut bad = Vec::new();
+        let mut levels = vec![Level::Portable];
+        if Level::detect() != Level::Portable {
+            levels.push(Level::detect());
+        }
         for (c, cam) in cams.iter().enumerate() {
             let mut view = ViewConsts::new(cam);
             tamper(&mut view);
-            for ids in chunks(g.len()) {
+            for (level, ids) in levels
+                .iter()
+                .flat_map(|&level| chunks(g.len()).into_iter().map(move |ids| (level, ids)))
+            {
                 let want = reference(g, prep, cam, ids.clone());
                 // Appends after what is there.
                 let mut got = vec![want.first().copied().unwrap_or(Splat::filler()); 2];
                 TRACE.with(|t| t.borrow_mut().clear());
-                project_chunk_with(&view, g, prep, cam.center(), ids.clone(), &mut got);
+                project_chunk_with(&view, g, prep, cam.center(), ids.clone(), level, &mut got);
                 let got = &got[2..];
                 let (mut wb, mut gb): (Vec<_>, Vec<_>) = (
                     want.iter()
@@ -1070,7 +1259,7 @@ mod tests {
                 if wb != gb {
                     let at = wb.iter().zip(&gb).position(|(a, b)| a != b);
                     bad.push(format!(
-                        "camera {c}, ids {ids:?}: {} vs {} splats, first difference at {at:?}",
+                        "camera {c}, {level:?}, ids {ids:?}: {} vs {} splats, first difference at {at:?}",
                         want.len(),
                         got.len()
                     ));

@@ -664,7 +664,15 @@ impl<'g> Rasterizer<'g> {
             .for_each(|(c, (out, keys))| {
                 out.clear();
                 let ids = c * PROJECT_CHUNK..((c + 1) * PROJECT_CHUNK).min(self.len());
-                project_chunk(self.gaussians, &self.prep, cam, campos, ids, out);
+                project_chunk(
+                    self.gaussians,
+                    &self.prep,
+                    cam,
+                    campos,
+                    ids,
+                    self.level,
+                    out,
+                );
                 keys.clear();
                 keys.extend(out.iter().enumerate().map(|(i, sp)| depth_key(sp, c, i)));
             });
