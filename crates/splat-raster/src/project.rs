@@ -447,7 +447,7 @@ fn project_chunk_with(
         Level::Avx512 => unsafe { project_batches_avx512(view, g, prep, campos, ids.clone(), out) },
     };
     for i in tail..ids.end {
-        let mut lane = Lanes::<1>::default();
+        let mut lane = ProjectedLanes::<1>::default();
         view.project_lanes(g, prep, i, &mut lane);
         lane.emit(g, prep, campos, i, out);
     }
@@ -479,7 +479,7 @@ fn project_batches(
     out: &mut Vec<Splat>,
 ) -> usize {
     let mut first = ids.start;
-    let mut lanes = Lanes::<BATCH>::default();
+    let mut lanes = ProjectedLanes::<BATCH>::default();
     while first + BATCH <= ids.end {
         // A batch of Gaussians that are never drawn (zero opacity) costs nothing.
         if prep.var_max[first..first + BATCH]
@@ -498,7 +498,7 @@ fn project_batches(
 /// the l-th: whether [`project`] + [`Splat::new`] keep it, and the values of its
 /// [`Splat`] (meaningless in lanes that are not kept).
 #[derive(Debug, Clone, Copy)]
-struct Lanes<const L: usize> {
+struct ProjectedLanes<const L: usize> {
     keep: [bool; L],
     /// The f64 intermediates: centre, depth, 2D covariance, conic, radius.
     u: [f64; L],
@@ -519,9 +519,9 @@ struct Lanes<const L: usize> {
     rect: [[u16; L]; 4],
 }
 
-impl<const L: usize> Default for Lanes<L> {
+impl<const L: usize> Default for ProjectedLanes<L> {
     fn default() -> Self {
-        Lanes {
+        ProjectedLanes {
             keep: [false; L],
             u: [0.0; L],
             v: [0.0; L],
@@ -539,7 +539,7 @@ impl<const L: usize> Default for Lanes<L> {
     }
 }
 
-impl<const L: usize> Lanes<L> {
+impl<const L: usize> ProjectedLanes<L> {
     /// Appends the [`Splat`] of every kept lane (Gaussian `first + l`), in lane order.
     #[inline(always)]
     fn emit(
@@ -694,7 +694,7 @@ impl ViewConsts {
         g: &Gaussians,
         prep: &Prepared,
         first: usize,
-        out: &mut Lanes<L>,
+        out: &mut ProjectedLanes<L>,
     ) {
         let means = &g.means[first..first + L];
         let var_max = &prep.var_max[first..first + L];
