@@ -3,16 +3,25 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use profuse_formats::{Cameras, FileKind, Gaussians, Masks};
+use profuse_formats::{Cameras, FileKind, Gaussians, Masks, Proposals};
 use profuse_fuse::{
     accumulate, group_descriptors, registered_mask_descriptors, Groups, Orphans, Scene, NO_GROUP,
 };
 
-#[test]
-fn each_mask_gets_its_groups_descriptor_or_none() {
+/// A synth `tiny` scene (seed, Gaussian count) and its ground-truth proposals (objects
+/// with at least `min_members` masks); the directory lives as long as the scene.
+struct TinyScene {
+    _dir: tempfile::TempDir,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    masks: Masks,
+    proposals: Proposals,
+}
+
+fn tiny_scene(seed: u64, gaussians: usize, min_members: usize) -> TinyScene {
     let dir = tempfile::tempdir().unwrap();
-    let mut config = synth::Config::preset(synth::Preset::Tiny, 2);
-    config.gaussians = 2000;
+    let mut config = synth::Config::preset(synth::Preset::Tiny, seed);
+    config.gaussians = gaussians;
     config.write_matches = false;
     synth::generate(&config, dir.path()).unwrap();
     let gaussians = Gaussians::read(dir.path().join("gt/gaussians.safetensors")).unwrap();
@@ -21,9 +30,27 @@ fn each_mask_gets_its_groups_descriptor_or_none() {
     let proposals = profuse_fuse::testing::proposals_from_mask_objects(
         dir.path().join("gt/mask_objects.json"),
         &masks,
-        2,
+        min_members,
     )
     .unwrap();
+    TinyScene {
+        _dir: dir,
+        gaussians,
+        cameras,
+        masks,
+        proposals,
+    }
+}
+
+#[test]
+fn each_mask_gets_its_groups_descriptor_or_none() {
+    let TinyScene {
+        gaussians,
+        cameras,
+        masks,
+        proposals,
+        ..
+    } = tiny_scene(2, 2000, 2);
     let scene = Scene::new(&gaussians, &cameras, &masks);
     let d = masks.dim;
 
@@ -78,20 +105,13 @@ fn each_mask_gets_its_groups_descriptor_or_none() {
 /// set without mass is `None`, and an id beyond the masks is an error.
 #[test]
 fn pooled_descriptor_of_a_proposal_equals_its_row_of_the_full_registration() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut config = synth::Config::preset(synth::Preset::Tiny, 3);
-    config.gaussians = 3000;
-    config.write_matches = false;
-    synth::generate(&config, dir.path()).unwrap();
-    let gaussians = Gaussians::read(dir.path().join("gt/gaussians.safetensors")).unwrap();
-    let cameras = Cameras::read(dir.path().join("cameras.safetensors")).unwrap();
-    let masks = Masks::read(dir.path().join("masks.safetensors")).unwrap();
-    let proposals = profuse_fuse::testing::proposals_from_mask_objects(
-        dir.path().join("gt/mask_objects.json"),
-        &masks,
-        1,
-    )
-    .unwrap();
+    let TinyScene {
+        gaussians,
+        cameras,
+        masks,
+        proposals,
+        ..
+    } = tiny_scene(3, 3000, 1);
     let scene = Scene::new(&gaussians, &cameras, &masks);
     let d = masks.dim;
     let groups = Groups::from_proposals(&masks, &proposals, Orphans::Ignore, "p").unwrap();
