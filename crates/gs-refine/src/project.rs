@@ -3,12 +3,14 @@
 //! quantities (centre, conic, colour, opacity) pulled back to the mean, log-scales,
 //! quaternion, opacity logit and SH coefficients.
 //!
-//! The forward repeats `splat_raster`'s operations in the same order, so the screen
-//! quantities are bit-identical to `Rasterizer::project` (the integration tests compare).
+//! The forward takes the 2D footprint, the clamp range of the Jacobian and the tile span from
+//! `splat_raster` ([`footprint`], [`tangent_range`], [`tile_span`]) and repeats the rest of
+//! its operations in the same order, so the screen quantities are bit-identical to
+//! `Rasterizer::project` (the integration tests compare).
 
 use profuse_formats::camera;
 use splat_raster::sh::{SH_C0, SH_C1, SH_C2, SH_C3};
-use splat_raster::{ViewCamera, FRUSTUM_CLAMP, LOW_PASS, NEAR_PLANE, SIGMA_EXTENT, TILE};
+use splat_raster::{footprint, tangent_range, tile_span, Footprint, ViewCamera, NEAR_PLANE};
 
 use crate::params::{rest_coeffs, Params};
 
@@ -72,9 +74,7 @@ fn project_inner(
     let (w, h) = (f64::from(cam.width), f64::from(cam.height));
     let [u, v] = camera::project(&cam.intrinsics, p);
     let clamp_tan = |t: f64, c: f64, f: f64, size: f64| {
-        let (lo, hi) = (-c / f, (size - c) / f);
-        let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-        let (a, b) = (mid - FRUSTUM_CLAMP * half, mid + FRUSTUM_CLAMP * half);
+        let [a, b] = tangent_range(c, f, size);
         (t.clamp(a, b), !(a..=b).contains(&t))
     };
     let (tan_x, cl_x) = clamp_tan(p[0] / z, cx, fx, w);
@@ -95,43 +95,21 @@ fn project_inner(
     let [sxx, sxy, sxz, syy, syz, szz] =
         [e3(0, 0), e3(0, 1), e3(0, 2), e3(1, 1), e3(1, 2), e3(2, 2)];
     let sigma = [[sxx, sxy, sxz], [sxy, syy, syz], [sxz, syz, szz]];
-    let ts: [[f64; 3]; 2] = std::array::from_fn(|a| {
-        std::array::from_fn(|b| {
-            t[a][0] * sigma[0][b] + t[a][1] * sigma[1][b] + t[a][2] * sigma[2][b]
-        })
-    });
-    let e = |a: usize, b: usize| ts[a][0] * t[b][0] + ts[a][1] * t[b][1] + ts[a][2] * t[b][2];
-    let ca = e(0, 0) + LOW_PASS;
-    let cb = e(0, 1);
-    let cc = e(1, 1) + LOW_PASS;
-    let det = ca * cc - cb * cb;
-    if det.is_nan() || det <= 0.0 || !det.is_finite() || !ca.is_finite() || !cc.is_finite() {
-        return None;
-    }
-    let conic = [cc / det, -cb / det, ca / det];
-    let mid = 0.5 * (ca + cc);
-    let disc = (mid * mid - det).max(0.1).sqrt();
-    let lambda = (mid + disc).max(mid - disc);
-    let radius = (SIGMA_EXTENT * lambda.sqrt()).ceil();
+    let Footprint {
+        cov2d,
+        conic,
+        radius,
+    } = footprint(&t, &sigma)?;
     let (tiles_x, tiles_y) = cam.tiles();
-    let tile_range = |c: f64, n: usize| -> Option<[u32; 2]> {
-        let lo = ((c - radius) / TILE as f64).floor();
-        let hi = ((c + radius) / TILE as f64).floor();
-        let last = (n - 1) as f64;
-        if !(hi >= 0.0 && lo <= last) {
-            return None;
-        }
-        Some([lo.max(0.0) as u32, hi.min(last) as u32])
-    };
-    let [tx0, tx1] = tile_range(u, tiles_x)?;
-    let [ty0, ty1] = tile_range(v, tiles_y)?;
+    let [tx0, tx1] = tile_span(u, radius, tiles_x)?;
+    let [ty0, ty1] = tile_span(v, radius, tiles_y)?;
     let color = sh_color(g, i, campos, mean);
     let opacity = g.opacity(i);
     Some((
         Proj {
             center: [u, v],
             depth: z,
-            cov2d: [ca, cb, cc],
+            cov2d,
             conic,
             tiles: [tx0, tx1, ty0, ty1],
             color,

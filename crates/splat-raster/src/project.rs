@@ -238,14 +238,11 @@ pub(crate) fn project(
     let (w, h) = (f64::from(cam.width), f64::from(cam.height));
     let [u, v] = camera::project(&cam.intrinsics, p);
 
-    // EWA: Jacobian of the perspective projection at the mean, with x/z and y/z clamped to
-    // 1.3 x the half field of view (INRIA `computeCov2D`). The tangent range of the image is
-    // [−cx/fx, (w − cx)/fx]; it is widened by 1.3 about its middle, which for a centred
-    // principal point is INRIA's ±1.3·tan(fov/2).
+    // EWA: Jacobian of the perspective projection at the mean, with x/z and y/z clamped
+    // (INRIA `computeCov2D`).
     let clamp_tan = |t: f64, c: f64, f: f64, size: f64| {
-        let (lo, hi) = (-c / f, (size - c) / f);
-        let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-        t.clamp(mid - FRUSTUM_CLAMP * half, mid + FRUSTUM_CLAMP * half)
+        let [lo, hi] = tangent_range(c, f, size);
+        t.clamp(lo, hi)
     };
     let tx = clamp_tan(p[0] / z, cx, fx, w) * z;
     let ty = clamp_tan(p[1] / z, cy, fy, h) * z;
@@ -260,7 +257,58 @@ pub(crate) fn project(
     });
     let [sxx, sxy, sxz, syy, syz, szz] = prep.cov3d[i];
     let sigma = [[sxx, sxy, sxz], [sxy, syy, syz], [sxz, syz, szz]];
-    // cov2d = T Σ Tᵀ
+    let Footprint {
+        cov2d,
+        conic,
+        radius,
+    } = footprint(&t, &sigma)?;
+    let (tiles_x, tiles_y) = cam.tiles();
+    let [tx0, tx1] = tile_span(u, radius, tiles_x)?;
+    let [ty0, ty1] = tile_span(v, radius, tiles_y)?;
+
+    let color = sh_color(g, campos, i, mean);
+    Some(Projected {
+        id: i as u32,
+        center: [u, v],
+        depth: z,
+        cov2d,
+        conic,
+        radius,
+        tiles: [tx0, tx1, ty0, ty1],
+        color,
+        opacity: prep.opacity[i],
+    })
+}
+
+/// The range to which [`Rasterizer::project`](crate::Rasterizer::project) clamps x/z (or
+/// y/z) in the perspective Jacobian, for principal point `c`, focal length `f` and image
+/// size `size` along that axis: the image's tangent range [−c/f, (size − c)/f] widened by
+/// [`FRUSTUM_CLAMP`] about its middle, which for a centred principal point is INRIA's
+/// ±1.3·tan(fov/2).
+pub fn tangent_range(c: f64, f: f64, size: f64) -> [f64; 2] {
+    let (lo, hi) = (-c / f, (size - c) / f);
+    let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+    [mid - FRUSTUM_CLAMP * half, mid + FRUSTUM_CLAMP * half]
+}
+
+/// The screen footprint of a Gaussian (INRIA `computeCov2D` and the radius of
+/// `preprocessCUDA`), from T = J W (the perspective Jacobian at the mean times the
+/// world-to-camera rotation, 2 x 3) and its 3D covariance Σ.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Footprint {
+    /// T Σ Tᵀ + 0.3 I (the low-pass), `[xx, xy, yy]` in pixels².
+    pub cov2d: [f64; 3],
+    /// Its inverse `[a, b, c]`: power = −½(a dx² + c dy²) − b dx dy.
+    pub conic: [f64; 3],
+    /// ceil(3 √λ) with λ = mid + max(√(mid² − det), √0.1), mid = (xx + yy) / 2.
+    pub radius: f64,
+}
+
+/// [`Footprint`] of T and Σ; `None` where the 2D covariance is degenerate (det <= 0, or
+/// anything non-finite), which [`Rasterizer::project`](crate::Rasterizer::project) culls.
+/// The operations and their order are the renderer's, so gs-refine's differentiable
+/// projection gets the same bits.
+pub fn footprint(t: &[[f64; 3]; 2], sigma: &[[f64; 3]; 3]) -> Option<Footprint> {
     let ts: [[f64; 3]; 2] = std::array::from_fn(|a| {
         std::array::from_fn(|b| {
             t[a][0] * sigma[0][b] + t[a][1] * sigma[1][b] + t[a][2] * sigma[2][b]
@@ -274,37 +322,26 @@ pub(crate) fn project(
     if det.is_nan() || det <= 0.0 || !det.is_finite() || !ca.is_finite() || !cc.is_finite() {
         return None;
     }
-    let conic = [cc / det, -cb / det, ca / det];
     let mid = 0.5 * (ca + cc);
     let disc = (mid * mid - det).max(0.1).sqrt();
     let lambda = (mid + disc).max(mid - disc);
-    let radius = ceil(SIGMA_EXTENT * lambda.sqrt());
-
-    let (tiles_x, tiles_y) = cam.tiles();
-    let tile_range = |c: f64, n: usize| -> Option<[u32; 2]> {
-        let lo = floor((c - radius) / TILE as f64);
-        let hi = floor((c + radius) / TILE as f64);
-        let last = (n - 1) as f64;
-        if !(hi >= 0.0 && lo <= last) {
-            return None;
-        }
-        Some([lo.max(0.0) as u32, hi.min(last) as u32])
-    };
-    let [tx0, tx1] = tile_range(u, tiles_x)?;
-    let [ty0, ty1] = tile_range(v, tiles_y)?;
-
-    let color = sh_color(g, campos, i, mean);
-    Some(Projected {
-        id: i as u32,
-        center: [u, v],
-        depth: z,
+    Some(Footprint {
         cov2d: [ca, cb, cc],
-        conic,
-        radius,
-        tiles: [tx0, tx1, ty0, ty1],
-        color,
-        opacity: prep.opacity[i],
+        conic: [cc / det, -cb / det, ca / det],
+        radius: ceil(SIGMA_EXTENT * lambda.sqrt()),
     })
+}
+
+/// The tiles `[first, last]` (inclusive, clamped to `0..n`) that `[c − radius, c +
+/// radius]` touches, tile of x = floor(x / 16); `None` when it misses all `n`.
+pub fn tile_span(c: f64, radius: f64, n: usize) -> Option<[u32; 2]> {
+    let lo = floor((c - radius) / TILE as f64);
+    let hi = floor((c + radius) / TILE as f64);
+    let last = n.checked_sub(1)? as f64;
+    if !(hi >= 0.0 && lo <= last) {
+        return None;
+    }
+    Some([lo.max(0.0) as u32, hi.min(last) as u32])
 }
 
 /// A projected Gaussian in the single-precision form the tile loop uses, with the pixel
@@ -619,13 +656,8 @@ impl ViewConsts {
     fn new(cam: &ViewCamera) -> Self {
         let [fx, fy, cx, cy] = cam.intrinsics;
         let (w, h) = (f64::from(cam.width), f64::from(cam.height));
-        let clamp_range = |c: f64, f: f64, size: f64| {
-            let (lo, hi) = (-c / f, (size - c) / f);
-            let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-            [mid - FRUSTUM_CLAMP * half, mid + FRUSTUM_CLAMP * half]
-        };
-        let tan_x = clamp_range(cx, fx, w);
-        let tan_y = clamp_range(cy, fy, h);
+        let tan_x = tangent_range(cx, fx, w);
+        let tan_y = tangent_range(cy, fy, h);
         let r = cam.rotation;
         let (tiles_x, tiles_y) = cam.tiles();
 
@@ -1360,15 +1392,6 @@ mod tests {
     /// their neighbours, NaN, infinities, huge values.
     #[test]
     fn floor_free_tile_and_rect_ranges_equal_the_floored_formulas() {
-        let reference_tiles = |c: f64, radius: f64, n: usize| -> Option<[u32; 2]> {
-            let lo = floor((c - radius) / TILE as f64);
-            let hi = floor((c + radius) / TILE as f64);
-            let last = (n - 1) as f64;
-            if !(hi >= 0.0 && lo <= last) {
-                return None;
-            }
-            Some([lo.max(0.0) as u32, hi.min(last) as u32])
-        };
         let reference_rect = |c: f64, e: f64, slack: f64, t0: u32, t1: u32, size: u32| {
             let lo = ceil(c - e - 0.5 - slack);
             let hi = floor(c + e - 0.5 + slack);
@@ -1399,7 +1422,7 @@ mod tests {
         for &c in &xs {
             for &r in &radii {
                 for n in [1, 3, 20] {
-                    let want = reference_tiles(c, r, n);
+                    let want = tile_span(c, r, n);
                     assert_eq!(tile_range(c, r, n), want, "tile_range({c}, {r}, {n})");
                     checked += 1;
                     some += usize::from(want.is_some());
