@@ -3,14 +3,16 @@
 //! quantities (centre, conic, colour, opacity) pulled back to the mean, log-scales,
 //! quaternion, opacity logit and SH coefficients.
 //!
-//! The forward takes the 2D footprint, the clamp range of the Jacobian and the tile span from
-//! `splat_raster` ([`footprint`], [`tangent_range`], [`tile_span`]) and repeats the rest of
+//! The forward takes the clamped Jacobian, the 2D footprint and the tiles from
+//! `splat_raster` ([`ewa_jacobian`], [`footprint`], [`screen_tiles`]) and repeats the rest of
 //! its operations in the same order, so the screen quantities are bit-identical to
 //! `Rasterizer::project` (the integration tests compare).
 
 use profuse_formats::camera;
 use splat_raster::sh::{SH_C0, SH_C1, SH_C2, SH_C3};
-use splat_raster::{footprint, tangent_range, tile_span, Footprint, ViewCamera, NEAR_PLANE};
+use splat_raster::{
+    ewa_jacobian, footprint, screen_tiles, EwaJacobian, Footprint, ViewCamera, NEAR_PLANE,
+};
 
 use crate::params::{rest_coeffs, Params};
 
@@ -70,25 +72,8 @@ fn project_inner(
     if z.is_nan() || z <= NEAR_PLANE {
         return None;
     }
-    let [fx, fy, cx, cy] = cam.intrinsics;
-    let (w, h) = (f64::from(cam.width), f64::from(cam.height));
     let [u, v] = camera::project(&cam.intrinsics, p);
-    let clamp_tan = |t: f64, c: f64, f: f64, size: f64| {
-        let [a, b] = tangent_range(c, f, size);
-        (t.clamp(a, b), !(a..=b).contains(&t))
-    };
-    let (tan_x, cl_x) = clamp_tan(p[0] / z, cx, fx, w);
-    let (tan_y, cl_y) = clamp_tan(p[1] / z, cy, fy, h);
-    let tx = tan_x * z;
-    let ty = tan_y * z;
-    let j = [
-        [fx / z, 0.0, -fx * tx / (z * z)],
-        [0.0, fy / z, -fy * ty / (z * z)],
-    ];
-    let r = &cam.rotation;
-    let t: [[f64; 3]; 2] = std::array::from_fn(|a| {
-        std::array::from_fn(|b| j[a][0] * r[0][b] + j[a][1] * r[1][b] + j[a][2] * r[2][b])
-    });
+    let EwaJacobian { t, tan, clamped } = ewa_jacobian(cam, p);
     let (rot, scale, qn, qnorm) = rotation_scale(g.log_scales[i], g.rotations[i])?;
     let m: [[f64; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|b| rot[a][b] * scale[b]));
     let e3 = |a: usize, b: usize| m[a][0] * m[b][0] + m[a][1] * m[b][1] + m[a][2] * m[b][2];
@@ -100,9 +85,7 @@ fn project_inner(
         conic,
         radius,
     } = footprint(&t, &sigma)?;
-    let (tiles_x, tiles_y) = cam.tiles();
-    let [tx0, tx1] = tile_span(u, radius, tiles_x)?;
-    let [ty0, ty1] = tile_span(v, radius, tiles_y)?;
+    let tiles = screen_tiles(cam, [u, v], radius)?;
     let color = sh_color(g, i, campos, mean);
     let opacity = g.opacity(i);
     Some((
@@ -111,14 +94,14 @@ fn project_inner(
             depth: z,
             cov2d,
             conic,
-            tiles: [tx0, tx1, ty0, ty1],
+            tiles,
             color,
             opacity,
         },
         Inter {
             p,
-            clamped: [cl_x, cl_y],
-            tan: [tan_x, tan_y],
+            clamped,
+            tan,
             t,
             sigma,
             rot,

@@ -136,7 +136,10 @@ mod simd;
 
 pub use camera::ViewCamera;
 pub use error::{RasterError, Result};
-pub use project::{covariance_3d, footprint, tangent_range, tile_span, Footprint, Projected};
+pub use project::{
+    covariance_3d, ewa_jacobian, footprint, screen_tiles, tangent_range, EwaJacobian, Footprint,
+    Projected,
+};
 pub use raster::{
     BlendCounts, DepthMode, ListScratch, Phases, Rasterizer, RenderOptions, RenderStats, Simd,
     TileLists, ViewRender,

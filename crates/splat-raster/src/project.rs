@@ -234,27 +234,8 @@ pub(crate) fn project(
     if z.is_nan() || z <= NEAR_PLANE {
         return None;
     }
-    let [fx, fy, cx, cy] = cam.intrinsics;
-    let (w, h) = (f64::from(cam.width), f64::from(cam.height));
     let [u, v] = camera::project(&cam.intrinsics, p);
-
-    // EWA: Jacobian of the perspective projection at the mean, with x/z and y/z clamped
-    // (INRIA `computeCov2D`).
-    let clamp_tan = |t: f64, c: f64, f: f64, size: f64| {
-        let [lo, hi] = tangent_range(c, f, size);
-        t.clamp(lo, hi)
-    };
-    let tx = clamp_tan(p[0] / z, cx, fx, w) * z;
-    let ty = clamp_tan(p[1] / z, cy, fy, h) * z;
-    let j = [
-        [fx / z, 0.0, -fx * tx / (z * z)],
-        [0.0, fy / z, -fy * ty / (z * z)],
-    ];
-    // T = J W (2x3), W = world-to-camera rotation.
-    let r = &cam.rotation;
-    let t: [[f64; 3]; 2] = std::array::from_fn(|a| {
-        std::array::from_fn(|b| j[a][0] * r[0][b] + j[a][1] * r[1][b] + j[a][2] * r[2][b])
-    });
+    let EwaJacobian { t, .. } = ewa_jacobian(cam, p);
     let [sxx, sxy, sxz, syy, syz, szz] = prep.cov3d[i];
     let sigma = [[sxx, sxy, sxz], [sxy, syy, syz], [sxz, syz, szz]];
     let Footprint {
@@ -262,10 +243,7 @@ pub(crate) fn project(
         conic,
         radius,
     } = footprint(&t, &sigma)?;
-    let (tiles_x, tiles_y) = cam.tiles();
-    let [tx0, tx1] = tile_span(u, radius, tiles_x)?;
-    let [ty0, ty1] = tile_span(v, radius, tiles_y)?;
-
+    let tiles = screen_tiles(cam, [u, v], radius)?;
     let color = sh_color(g, campos, i, mean);
     Some(Projected {
         id: i as u32,
@@ -274,10 +252,48 @@ pub(crate) fn project(
         cov2d,
         conic,
         radius,
-        tiles: [tx0, tx1, ty0, ty1],
+        tiles,
         color,
         opacity: prep.opacity[i],
     })
+}
+
+/// T = J W, the perspective Jacobian J at the camera-space mean `p` times the
+/// world-to-camera rotation W (INRIA `computeCov2D`), with x/z and y/z clamped to
+/// [`tangent_range`], and what the clamp did (gs-refine's backward pass needs it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EwaJacobian {
+    /// T (2 x 3).
+    pub t: [[f64; 3]; 2],
+    /// The clamped x/z and y/z.
+    pub tan: [f64; 2],
+    /// Whether x/z (y/z) lay outside its range and was clamped.
+    pub clamped: [bool; 2],
+}
+
+/// [`EwaJacobian`] of camera-space point `p` (z > 0) in `cam`.
+pub fn ewa_jacobian(cam: &ViewCamera, p: [f64; 3]) -> EwaJacobian {
+    let [fx, fy, cx, cy] = cam.intrinsics;
+    let z = p[2];
+    let clamp_tan = |t: f64, c: f64, f: f64, size: u32| {
+        let [lo, hi] = tangent_range(c, f, f64::from(size));
+        (t.clamp(lo, hi), !(lo..=hi).contains(&t))
+    };
+    let (tan_x, clamped_x) = clamp_tan(p[0] / z, cx, fx, cam.width);
+    let (tan_y, clamped_y) = clamp_tan(p[1] / z, cy, fy, cam.height);
+    let (tx, ty) = (tan_x * z, tan_y * z);
+    let j = [
+        [fx / z, 0.0, -fx * tx / (z * z)],
+        [0.0, fy / z, -fy * ty / (z * z)],
+    ];
+    let r = &cam.rotation;
+    EwaJacobian {
+        t: std::array::from_fn(|a| {
+            std::array::from_fn(|b| j[a][0] * r[0][b] + j[a][1] * r[1][b] + j[a][2] * r[2][b])
+        }),
+        tan: [tan_x, tan_y],
+        clamped: [clamped_x, clamped_y],
+    }
 }
 
 /// The range to which [`Rasterizer::project`](crate::Rasterizer::project) clamps x/z (or
@@ -332,9 +348,18 @@ pub fn footprint(t: &[[f64; 3]; 2], sigma: &[[f64; 3]; 3]) -> Option<Footprint> 
     })
 }
 
+/// The tiles `[tx0, tx1, ty0, ty1]` of `cam`'s grid (inclusive, clamped) that the square
+/// of half-side `radius` about `center` touches; `None` when it misses the grid.
+pub fn screen_tiles(cam: &ViewCamera, center: [f64; 2], radius: f64) -> Option<[u32; 4]> {
+    let (tiles_x, tiles_y) = cam.tiles();
+    let [tx0, tx1] = tile_span(center[0], radius, tiles_x)?;
+    let [ty0, ty1] = tile_span(center[1], radius, tiles_y)?;
+    Some([tx0, tx1, ty0, ty1])
+}
+
 /// The tiles `[first, last]` (inclusive, clamped to `0..n`) that `[c − radius, c +
 /// radius]` touches, tile of x = floor(x / 16); `None` when it misses all `n`.
-pub fn tile_span(c: f64, radius: f64, n: usize) -> Option<[u32; 2]> {
+fn tile_span(c: f64, radius: f64, n: usize) -> Option<[u32; 2]> {
     let lo = floor((c - radius) / TILE as f64);
     let hi = floor((c + radius) / TILE as f64);
     let last = n.checked_sub(1)? as f64;
