@@ -18,12 +18,24 @@
 //!    renderer's own occlusion, with no depth tolerance: a depth test with a relative
 //!    tolerance lets a wall behind a bookshelf 5% nearer pass as seen, and then votes the
 //!    wall into the bookshelf's mask.
-//! 2. **A mask's points** P_m: the points seen in its own view with its label.
-//! 3. **Observed and contained.** View k *observes* mask m when at least
-//!    `visible_ratio` of P_m carry a label in k (at least one point). Among those, the most
-//!    frequent label n (ties: the smaller id) *contains* m when it holds more than
-//!    `contained_ratio` of them; otherwise m is *split* in k. A mask observes and contains
-//!    itself in its own view.
+//! 2. **A mask's points** P_m: the points seen in its own view with its label. Each point
+//!    carries a weight w_m(p) ([`PointWeight`]): by default the number of m's interior
+//!    pixels it wins, so that P_m measures the mask's *area*; `points` gives every point
+//!    weight 1 (MaskClustering's count).
+//! 3. **Observed and contained.** View k *observes* mask m when the points of P_m that
+//!    carry a label in k hold at least `visible_ratio` of P_m's weight (at least one
+//!    point). Among those, the label n with the most weight (ties: the smaller id)
+//!    *contains* m when it holds more than `contained_ratio` of their weight; otherwise m
+//!    is *split* in k. A mask observes and contains itself in its own view.
+//!
+//!    Why weights: MaskClustering's points come from depth maps at a uniform density, so
+//!    counting points measures area. The Gaussians here come from triangulated matches,
+//!    dense on texture and sparse on plain surfaces (a floor is covered by few large
+//!    Gaussians, a sofa by many small ones). By count, a mask that is 64% floor and 36%
+//!    sofa by area is mostly sofa points, is found contained in the sofa's masks, and
+//!    joins the sofa's proposal, which then gives the sofa's class to the floor under it.
+//!    By pixels it is split between the two wherever they are segmented apart, and is
+//!    recognised as under-segmented (measured in the crate README).
 //! 4. **Under-segmented masks**: split in more than `undersegment_ratio` of the views that
 //!    observe them (or with fewer than [`MIN_MASK_POINTS`] points). They join no proposal,
 //!    and their votes are withdrawn: a mask contained in one loses that containment and the
@@ -42,7 +54,9 @@
 //!
 //! All counts are integers and every step runs in a fixed order, so the result does not
 //! depend on the thread count. Memory: one label per (point, view) as u32 (V · N · 4
-//! bytes; 160 MB for 200 views of 200,000 points) plus the masks' point lists.
+//! bytes; 160 MB for 200 views of 200,000 points) plus the masks' point lists and their
+//! weights (a point is in at most one mask per view; the pixel counts of a view are
+//! folded into the lists as the view is labelled and then dropped).
 //!
 //! [`Grouping::Consensus`]: crate::Grouping::Consensus
 
@@ -82,14 +96,39 @@ fn interior_pixels(plane: &[u32], width: usize) -> Vec<bool> {
 /// A mask with fewer points than this cannot be judged; it counts as under-segmented.
 pub const MIN_MASK_POINTS: usize = 5;
 
-/// Parameters of the view-consensus grouping (MaskClustering's values are the defaults).
+/// What a point of a mask weighs in the containment votes (module docs, steps 2-3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "kebab-case")]
+pub enum PointWeight {
+    /// The number of the mask's interior pixels the point wins in the mask's own view: the
+    /// votes measure area, whatever the density of the Gaussians.
+    #[default]
+    Pixels,
+    /// One per point (MaskClustering, whose depth-map points have a uniform density).
+    Points,
+}
+
+impl PointWeight {
+    /// Name used in metadata and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            PointWeight::Pixels => "pixels",
+            PointWeight::Points => "points",
+        }
+    }
+}
+
+/// Parameters of the view-consensus grouping (MaskClustering's values are the defaults,
+/// except `undersegment_ratio` and `point_weight`: see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ConsensusParams {
-    /// A view observes a mask when at least this share of the mask's points carry a label
-    /// there (MaskClustering: 0.3).
+    /// A view observes a mask when the mask's points that carry a label there hold at
+    /// least this share of their weight (MaskClustering: 0.3, by count).
     pub visible_ratio: f64,
-    /// A mask is contained in a mask of another view when more than this share of its
-    /// labelled points there carry that mask's label (MaskClustering: 0.8).
+    /// A mask is contained in a mask of another view when more than this share of the
+    /// weight of its labelled points there carries that mask's label (MaskClustering: 0.8,
+    /// by count).
     pub contained_ratio: f64,
     /// A mask split in more than this share of the views that observe it is
     /// under-segmented (MaskClustering: 0.3).
@@ -102,6 +141,8 @@ pub struct ConsensusParams {
     /// first) where the views hold no evidence against it: no view contains both, or the
     /// consensus rate still holds (see the module docs, step 7).
     pub link_merge: bool,
+    /// What a mask's point weighs in the votes.
+    pub point_weight: PointWeight,
 }
 
 impl Default for ConsensusParams {
@@ -113,6 +154,7 @@ impl Default for ConsensusParams {
             consensus: 0.9,
             max_points: 200_000,
             link_merge: true,
+            point_weight: PointWeight::Pixels,
         }
     }
 }
@@ -138,6 +180,15 @@ pub(crate) fn point_stride(gaussians: usize, max_points: usize) -> usize {
     gaussians.div_ceil(max_points.max(1)).max(1)
 }
 
+/// Every tracked point's label in one view, and how many of the label's pixels it won.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct ViewPoints {
+    /// Per point: its label, or [`NONE`].
+    pub labels: Vec<u32>,
+    /// Per point: the interior pixels carrying its label that it wins (0 with [`NONE`]).
+    pub pixels: Vec<u32>,
+}
+
 /// The label of every tracked point in one view, from the view's top-1 render on the mask
 /// grid: `ids[p]` is the Gaussian contributing most to pixel p (or an id >= `gaussians`
 /// for none), `plane[p]` the pixel's mask label. A point takes the label most of its
@@ -149,7 +200,7 @@ pub(crate) fn view_point_labels(
     width: usize,
     gaussians: usize,
     stride: usize,
-) -> Vec<u32> {
+) -> ViewPoints {
     let points = gaussians.div_ceil(stride);
     let interior = interior_pixels(plane, width);
     let mut votes: Vec<(u32, u32)> = ids
@@ -163,6 +214,7 @@ pub(crate) fn view_point_labels(
         .collect();
     votes.sort_unstable();
     let mut labels = vec![NONE; points];
+    let mut pixels = vec![0u32; points];
     for run in votes.chunk_by(|a, b| a.0 == b.0) {
         let mut best = (0usize, NONE);
         for same in run.chunk_by(|a, b| a.1 == b.1) {
@@ -171,9 +223,46 @@ pub(crate) fn view_point_labels(
                 best = (same.len(), same[0].1);
             }
         }
-        labels[run[0].0 as usize] = best.1;
+        if best.1 != NONE {
+            labels[run[0].0 as usize] = best.1;
+            pixels[run[0].0 as usize] = u32::try_from(best.0).unwrap_or(u32::MAX);
+        }
     }
-    labels
+    ViewPoints { labels, pixels }
+}
+
+/// Every mask's points P_m and their weights, gathered view by view (so that only the
+/// labels, not the pixel counts, of all views are kept).
+#[derive(Debug, Clone)]
+pub(crate) struct MaskPoints {
+    points: Vec<Vec<u32>>,
+    weights: Vec<Vec<u32>>,
+    weight: PointWeight,
+}
+
+impl MaskPoints {
+    pub fn new(masks: usize, weight: PointWeight) -> Self {
+        MaskPoints {
+            points: vec![Vec::new(); masks],
+            weights: vec![Vec::new(); masks],
+            weight,
+        }
+    }
+
+    /// Adds the points of the view whose first mask has global id `offset`.
+    pub fn add_view(&mut self, offset: u32, view: &ViewPoints) {
+        for (g, (&l, &px)) in view.labels.iter().zip(&view.pixels).enumerate() {
+            if l == NONE {
+                continue;
+            }
+            let m = (offset + l) as usize;
+            self.points[m].push(g as u32);
+            self.weights[m].push(match self.weight {
+                PointWeight::Pixels => px,
+                PointWeight::Points => 1,
+            });
+        }
+    }
 }
 
 /// Per mask: the views that observe it with it contained (its visible views, as a bit
@@ -185,9 +274,11 @@ struct MaskVotes {
     undersegmented: bool,
 }
 
-/// Observed/contained/split for mask `m` of view `own` with point ids `pts`.
+/// Observed/contained/split for mask `m` of view `own` with point ids `pts` of weights
+/// `wts`.
 fn mask_votes(
     pts: &[u32],
+    wts: &[u32],
     own: usize,
     global: u32,
     labels: &[Vec<u32>],
@@ -205,7 +296,8 @@ fn mask_votes(
         };
     }
     let (mut observed, mut split) = (0usize, 0usize);
-    let mut counts: HashMap<u32, u32> = HashMap::new();
+    let total: u64 = wts.iter().map(|&w| u64::from(w)).sum();
+    let mut counts: HashMap<u32, u64> = HashMap::new();
     for (k, lk) in labels.iter().enumerate() {
         if k == own {
             observed += 1;
@@ -214,22 +306,22 @@ fn mask_votes(
             continue;
         }
         counts.clear();
-        let mut labelled = 0u32;
-        for &g in pts {
+        let mut labelled = 0u64;
+        for (&g, &w) in pts.iter().zip(wts) {
             let l = lk[g as usize];
             if l != NONE {
-                labelled += 1;
-                *counts.entry(l).or_insert(0) += 1;
+                labelled += u64::from(w);
+                *counts.entry(l).or_insert(0) += u64::from(w);
             }
         }
-        if labelled == 0 || (labelled as f64) < p.visible_ratio * pts.len() as f64 {
+        if labelled == 0 || (labelled as f64) < p.visible_ratio * total as f64 {
             continue;
         }
         observed += 1;
         let Some((&best, &n)) = counts.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))) else {
             continue;
         };
-        if f64::from(n) > p.contained_ratio * f64::from(labelled) {
+        if n as f64 > p.contained_ratio * labelled as f64 {
             visible[k / 64] |= 1 << (k % 64);
             containers.push(offsets[k] + best);
         } else {
@@ -480,6 +572,7 @@ fn merge_along_links(
 /// flagged), plus statistics.
 pub(crate) fn cluster(
     labels: &[Vec<u32>],
+    mask_points: &MaskPoints,
     offsets: &[u32],
     points: usize,
     links: &[Link],
@@ -487,21 +580,15 @@ pub(crate) fn cluster(
 ) -> (Vec<u32>, Vec<bool>, ConsensusStats) {
     let views = labels.len();
     let masks = offsets.last().map_or(0, |m| *m as usize);
-    // Every mask's points: bucket the points by their label in the mask's own view.
-    let mut mask_points: Vec<Vec<u32>> = vec![Vec::new(); masks];
-    for (v, lv) in labels.iter().enumerate() {
-        for (g, &l) in lv.iter().enumerate() {
-            if l != NONE {
-                mask_points[(offsets[v] + l) as usize].push(g as u32);
-            }
-        }
-    }
     let view_of: Vec<usize> = (0..views)
         .flat_map(|v| std::iter::repeat_n(v, (offsets[v + 1] - offsets[v]) as usize))
         .collect();
     let mut votes: Vec<MaskVotes> = (0..masks)
         .into_par_iter()
-        .map(|m| mask_votes(&mask_points[m], view_of[m], m as u32, labels, offsets, p))
+        .map(|m| {
+            let (pts, wts) = (&mask_points.points[m], &mask_points.weights[m]);
+            mask_votes(pts, wts, view_of[m], m as u32, labels, offsets, p)
+        })
         .collect();
     // Withdraw the votes of under-segmented masks.
     let under: Vec<bool> = votes.iter().map(|v| v.undersegmented).collect();
@@ -582,9 +669,82 @@ mod tests {
         // Gaussian 0: pixels 0, 1 (label 5; pixel 2 is boundary) -> 5. Gaussian 2: pixel 3
         // is boundary, pixel 4 interior "none" -> NONE. Gaussian 4: pixels 5 (boundary),
         // 10 (boundary), 11 (6) -> 6. Gaussian 1 is not tracked, 9 is no Gaussian.
-        assert_eq!(view_point_labels(&ids, &plane, 12, 6, 2), vec![5, NONE, 6]);
+        // Only interior pixels count: Gaussian 0 wins pixel 0 (pixel 1 is boundary),
+        // Gaussian 4 pixel 11.
+        let seen = view_point_labels(&ids, &plane, 12, 6, 2);
+        assert_eq!(seen.labels, vec![5, NONE, 6]);
+        assert_eq!(seen.pixels, vec![1, 0, 1]);
         // Nothing tracked wins a pixel: every point unlabelled.
-        assert_eq!(view_point_labels(&[1, 3], &[0, 0], 2, 6, 2), vec![NONE; 3]);
+        let none = view_point_labels(&[1, 3], &[0, 0], 2, 6, 2);
+        assert_eq!(none.labels, vec![NONE; 3]);
+        assert_eq!(none.pixels, vec![0; 3]);
+        // A 4 x 4 image of one label: every pixel is interior (neighbourhoods are clipped
+        // at the border); Gaussian 0 wins 15 of them, Gaussian 2 one.
+        let ids = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 2, 0, 0, 0, 0, 0];
+        let seen = view_point_labels(&ids, &[3; 16], 4, 4, 2);
+        assert_eq!(seen.labels, vec![3, 3]);
+        assert_eq!(seen.pixels, vec![15, 1]);
+    }
+
+    /// Mask points of unit weight from point labels (offsets as in `cluster`).
+    fn unit_points(labels: &[Vec<u32>], offsets: &[u32], weight: PointWeight) -> MaskPoints {
+        let masks = offsets.last().map_or(0, |m| *m as usize);
+        let mut points = MaskPoints::new(masks, weight);
+        for (v, l) in labels.iter().enumerate() {
+            let pixels = l.iter().map(|&x| u32::from(x != NONE)).collect();
+            points.add_view(
+                offsets[v],
+                &ViewPoints {
+                    labels: l.clone(),
+                    pixels,
+                },
+            );
+        }
+        points
+    }
+
+    /// A merged mask over a densely and a sparsely sampled object (a sofa of many small
+    /// Gaussians, a floor of a few large ones): by count its points are 30 of 36 sofa, so
+    /// the sofa's masks contain it and it joins the sofa; by the pixels each point wins
+    /// (sofa 30, floor 60) the sofa holds a third of it, it is split wherever the two are
+    /// segmented apart, and it is under-segmented.
+    #[test]
+    fn pixel_weights_find_a_merged_mask_that_point_counts_take_for_the_dense_object() {
+        let sofa = |g: usize| g < 30;
+        // Views 1-4 separate sofa (label 0) and floor (label 1); view 0 merges them.
+        let mut labels = vec![vec![0u32; 36]];
+        labels.extend((0..4).map(|_| (0..36).map(|g| u32::from(!sofa(g))).collect()));
+        let offsets = [0, 1, 3, 5, 7, 9];
+        let pixels: Vec<u32> = (0..36).map(|g| if sofa(g) { 1 } else { 10 }).collect();
+        let build = |weight| {
+            let mut points = MaskPoints::new(9, weight);
+            for (v, l) in labels.iter().enumerate() {
+                let view = ViewPoints {
+                    labels: l.clone(),
+                    pixels: pixels.clone(),
+                };
+                points.add_view(offsets[v], &view);
+            }
+            points
+        };
+        let p = ConsensusParams {
+            point_weight: PointWeight::Points,
+            ..ConsensusParams::default()
+        };
+        let (root, under, _) = cluster(&labels, &build(PointWeight::Points), &offsets, 36, &[], &p);
+        assert_eq!(under, vec![false; 9]);
+        // Mask 0 (the merged one) and the sofa masks 1, 3, 5, 7 form one cluster.
+        assert_eq!(root, vec![0, 0, 2, 0, 2, 0, 2, 0, 2]);
+        let p = ConsensusParams::default();
+        assert_eq!(p.point_weight, PointWeight::Pixels);
+        let (root, under, stats) =
+            cluster(&labels, &build(PointWeight::Pixels), &offsets, 36, &[], &p);
+        assert_eq!(
+            under,
+            vec![true, false, false, false, false, false, false, false, false]
+        );
+        assert_eq!(root, vec![0, 1, 2, 1, 2, 1, 2, 1, 2]);
+        assert_eq!(stats.undersegmented, 1);
     }
 
     /// Five views see two objects (points 0-9 and 10-19). Views 0-3 separate them; view 4
@@ -611,8 +771,15 @@ mod tests {
                 box_iou: 0.5,
             })
             .collect();
-        let (root, under, stats) =
-            cluster(&labels, &offsets, 20, &links, &ConsensusParams::default());
+        let points = unit_points(&labels, &offsets, PointWeight::Pixels);
+        let (root, under, stats) = cluster(
+            &labels,
+            &points,
+            &offsets,
+            20,
+            &links,
+            &ConsensusParams::default(),
+        );
         assert_eq!(
             under,
             vec![false, false, false, false, false, false, false, false, true]
@@ -631,7 +798,9 @@ mod tests {
         let mut labels = vec![(0..20).map(|g| u32::from(g >= 10)).collect::<Vec<u32>>()];
         labels.extend((0..4).map(|_| vec![0; 20]));
         let offsets = [0, 2, 3, 4, 5, 6];
-        let (root, under, _) = cluster(&labels, &offsets, 20, &[], &ConsensusParams::default());
+        let points = unit_points(&labels, &offsets, PointWeight::Pixels);
+        let p = ConsensusParams::default();
+        let (root, under, _) = cluster(&labels, &points, &offsets, 20, &[], &p);
         assert_eq!(under, vec![false; 6]);
         assert_eq!(root, vec![0; 6]);
     }
@@ -654,11 +823,12 @@ mod tests {
             box_iou: 0.3,
         }];
         let mut p = ConsensusParams::default();
-        let (root, _, stats) = cluster(&labels, &offsets, 20, &links, &p);
+        let points = unit_points(&labels, &offsets, PointWeight::Pixels);
+        let (root, _, stats) = cluster(&labels, &points, &offsets, 20, &links, &p);
         assert_eq!(root, vec![0, 0, 0, 0]);
         assert_eq!(stats.link_merges, 1);
         p.link_merge = false;
-        let (root, _, _) = cluster(&labels, &offsets, 20, &links, &p);
+        let (root, _, _) = cluster(&labels, &points, &offsets, 20, &links, &p);
         assert_eq!(root, vec![0, 0, 2, 2]);
     }
 }

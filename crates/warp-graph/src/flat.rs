@@ -6,7 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::consensus::ConsensusParams;
+use crate::consensus::{ConsensusParams, PointWeight};
 use crate::params::{Grouping, Params, Sampling, Visibility};
 
 /// The defaults, for the command-line help.
@@ -83,12 +83,12 @@ pub struct FlatParams {
     /// Gaussians are given, else links).
     #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = d().grouping))]
     pub grouping: Grouping,
-    /// Consensus: a view observes a mask when at least this share of the mask's points
-    /// carry a label there.
+    /// Consensus: a view observes a mask when at least this share of the mask's points (by
+    /// weight, see --consensus-point-weight) carry a label there.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.visible_ratio))]
     pub consensus_visible_ratio: f64,
     /// Consensus: a mask is contained in a mask of another view when more than this share
-    /// of its labelled points there carry that mask's label.
+    /// of its labelled points (by weight) there carry that mask's label.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.contained_ratio))]
     pub consensus_contained_ratio: f64,
     /// Consensus: a mask split in more than this share of the views observing it is
@@ -109,6 +109,11 @@ pub struct FlatParams {
         arg(long = "no-consensus-link-merge", action = clap::ArgAction::SetFalse)
     )]
     pub consensus_link_merge: bool,
+    /// Consensus: what a mask's point weighs in the votes: `pixels` (the mask pixels it
+    /// wins, so votes measure area whatever the density of the Gaussians) or `points` (one
+    /// each, MaskClustering's count).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = d().consensus.point_weight))]
+    pub consensus_point_weight: PointWeight,
     /// Rendered depth maps kept in memory at once (LRU over views); memory, not method,
     /// so not part of the pipeline's configuration.
     #[serde(skip)]
@@ -154,6 +159,7 @@ impl From<FlatParams> for Params {
                 consensus: f.consensus_threshold,
                 max_points: f.consensus_max_points,
                 link_merge: f.consensus_link_merge,
+                point_weight: f.consensus_point_weight,
             },
         }
     }
@@ -185,6 +191,7 @@ impl From<Params> for FlatParams {
             consensus_threshold: p.consensus.consensus,
             consensus_max_points: p.consensus.max_points,
             consensus_link_merge: p.consensus.link_merge,
+            consensus_point_weight: p.consensus.point_weight,
             depth_cache_views: p.depth_cache_views,
         }
     }

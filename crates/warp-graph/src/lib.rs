@@ -148,7 +148,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 use splat_raster::{DepthMode, Rasterizer, RenderOptions, ViewRender};
 
-pub use consensus::{ConsensusParams, ConsensusStats, MIN_MASK_POINTS};
+pub use consensus::{ConsensusParams, ConsensusStats, PointWeight, MIN_MASK_POINTS};
 pub use depth_warps::{
     depth_warps, resolve_pairs, DepthWarpParams, DepthWarpReport, Pairs, DEFAULT_EDGE_TOL,
 };
@@ -563,7 +563,9 @@ impl<'a> Association<'a> {
             background: [0.0; 3],
         };
         // Views one after another: each render is itself parallel over tiles.
+        let offsets = &f.masks.mask_offsets;
         let mut labels: Vec<Vec<u32>> = Vec::with_capacity(f.masks.num_views());
+        let mut mask_points = consensus::MaskPoints::new(f.masks.num_masks(), cp.point_weight);
         let mut out = ViewRender::default();
         for v in 0..f.masks.num_views() {
             let plane = f.label_plane(v)?;
@@ -575,11 +577,13 @@ impl<'a> Association<'a> {
                     source,
                 })?;
             let ids = out.topk_ids().unwrap_or(&[]);
-            labels.push(consensus::view_point_labels(ids, &plane, f.mw, n, stride));
+            let seen = consensus::view_point_labels(ids, &plane, f.mw, n, stride);
+            mask_points.add_view(offsets[v], &seen);
+            labels.push(seen.labels);
         }
         let points = n.div_ceil(stride);
-        let offsets = &f.masks.mask_offsets;
-        let (roots, under, stats) = consensus::cluster(&labels, offsets, points, links, cp);
+        let (roots, under, stats) =
+            consensus::cluster(&labels, &mask_points, offsets, points, links, cp);
         let view_of = graph::views_of_masks(offsets);
         let (p, c) = graph::proposals_from_roots(
             &view_of,
@@ -717,6 +721,10 @@ impl<'a> Association<'a> {
                 ("consensus_threshold".to_string(), c.consensus.to_string()),
                 ("consensus_max_points".to_string(), c.max_points.to_string()),
                 ("consensus_link_merge".to_string(), c.link_merge.to_string()),
+                (
+                    "consensus_point_weight".to_string(),
+                    c.point_weight.name().to_string(),
+                ),
             ]);
         }
         m
