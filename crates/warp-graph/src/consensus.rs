@@ -686,21 +686,30 @@ mod tests {
         assert_eq!(seen.pixels, vec![15, 1]);
     }
 
-    /// Mask points of unit weight from point labels (offsets as in `cluster`).
-    fn unit_points(labels: &[Vec<u32>], offsets: &[u32], weight: PointWeight) -> MaskPoints {
+    /// Mask points from point labels (offsets as in `cluster`), every point winning
+    /// `pixels[g]` pixels in every view.
+    fn mask_points(
+        labels: &[Vec<u32>],
+        offsets: &[u32],
+        pixels: &[u32],
+        weight: PointWeight,
+    ) -> MaskPoints {
         let masks = offsets.last().map_or(0, |m| *m as usize);
         let mut points = MaskPoints::new(masks, weight);
         for (v, l) in labels.iter().enumerate() {
-            let pixels = l.iter().map(|&x| u32::from(x != NONE)).collect();
-            points.add_view(
-                offsets[v],
-                &ViewPoints {
-                    labels: l.clone(),
-                    pixels,
-                },
-            );
+            let view = ViewPoints {
+                labels: l.clone(),
+                pixels: pixels.to_vec(),
+            };
+            points.add_view(offsets[v], &view);
         }
         points
+    }
+
+    /// Mask points of one pixel each (so either weight mode gives the point counts).
+    fn unit_points(labels: &[Vec<u32>], offsets: &[u32]) -> MaskPoints {
+        let n = labels.first().map_or(0, Vec::len);
+        mask_points(labels, offsets, &vec![1; n], PointWeight::Pixels)
     }
 
     /// A merged mask over a densely and a sparsely sampled object (a sofa of many small
@@ -716,17 +725,7 @@ mod tests {
         labels.extend((0..4).map(|_| (0..36).map(|g| u32::from(!sofa(g))).collect()));
         let offsets = [0, 1, 3, 5, 7, 9];
         let pixels: Vec<u32> = (0..36).map(|g| if sofa(g) { 1 } else { 10 }).collect();
-        let build = |weight| {
-            let mut points = MaskPoints::new(9, weight);
-            for (v, l) in labels.iter().enumerate() {
-                let view = ViewPoints {
-                    labels: l.clone(),
-                    pixels: pixels.clone(),
-                };
-                points.add_view(offsets[v], &view);
-            }
-            points
-        };
+        let build = |weight| mask_points(&labels, &offsets, &pixels, weight);
         let p = ConsensusParams {
             point_weight: PointWeight::Points,
             ..ConsensusParams::default()
@@ -771,7 +770,7 @@ mod tests {
                 box_iou: 0.5,
             })
             .collect();
-        let points = unit_points(&labels, &offsets, PointWeight::Pixels);
+        let points = unit_points(&labels, &offsets);
         let (root, under, stats) = cluster(
             &labels,
             &points,
@@ -798,7 +797,7 @@ mod tests {
         let mut labels = vec![(0..20).map(|g| u32::from(g >= 10)).collect::<Vec<u32>>()];
         labels.extend((0..4).map(|_| vec![0; 20]));
         let offsets = [0, 2, 3, 4, 5, 6];
-        let points = unit_points(&labels, &offsets, PointWeight::Pixels);
+        let points = unit_points(&labels, &offsets);
         let p = ConsensusParams::default();
         let (root, under, _) = cluster(&labels, &points, &offsets, 20, &[], &p);
         assert_eq!(under, vec![false; 6]);
@@ -823,7 +822,7 @@ mod tests {
             box_iou: 0.3,
         }];
         let mut p = ConsensusParams::default();
-        let points = unit_points(&labels, &offsets, PointWeight::Pixels);
+        let points = unit_points(&labels, &offsets);
         let (root, _, stats) = cluster(&labels, &points, &offsets, 20, &links, &p);
         assert_eq!(root, vec![0, 0, 0, 0]);
         assert_eq!(stats.link_merges, 1);
