@@ -168,11 +168,23 @@ impl Record {
 }
 
 /// Open-addressing table summing one tile's hits per (Gaussian, group).
+///
+/// A slot holds its key and both halves of its sum, so a probe touches one cache line;
+/// the fixed-size arrays and the masked index let the probe loop run without bounds
+/// checks (it is the innermost loop of registration: one probe per hit).
 #[derive(Debug)]
 struct TileTable {
-    keys: Vec<u64>,
-    sums: Vec<u128>,
-    used: Vec<u32>,
+    slots: Box<[Slot; TABLE_SLOTS]>,
+    used: Box<[u16; TABLE_SLOTS / 2]>,
+    len: usize,
+}
+
+/// One slot of a [`TileTable`]: `key` = (Gaussian << 32) | group, or `EMPTY`.
+#[derive(Debug, Clone, Copy)]
+struct Slot {
+    key: u64,
+    lo: u64,
+    hi: u64,
 }
 
 impl Default for TileTable {
@@ -185,28 +197,35 @@ impl TileTable {
     const EMPTY: u64 = u64::MAX;
 
     fn new() -> Self {
+        let empty = Slot {
+            key: Self::EMPTY,
+            lo: 0,
+            hi: 0,
+        };
         TileTable {
-            keys: vec![Self::EMPTY; TABLE_SLOTS],
-            sums: vec![0; TABLE_SLOTS],
-            used: Vec::with_capacity(TABLE_SLOTS / 2),
+            slots: Box::new([empty; TABLE_SLOTS]),
+            used: Box::new([0; TABLE_SLOTS / 2]),
+            len: 0,
         }
     }
 
-    #[inline]
+    #[inline(always)]
     fn add(&mut self, g: u32, group: u32, q: u64, out: &mut Vec<Record>) {
         let key = (u64::from(g) << 32) | u64::from(group);
-        let mut i = (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 54) as usize;
+        let mut i = (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 54) as usize & (TABLE_SLOTS - 1);
         loop {
-            let k = self.keys[i];
-            if k == key {
-                self.sums[i] += u128::from(q);
+            let slot = &mut self.slots[i];
+            if slot.key == key {
+                let (lo, carry) = slot.lo.overflowing_add(q);
+                slot.lo = lo;
+                slot.hi += u64::from(carry);
                 return;
             }
-            if k == Self::EMPTY {
-                self.keys[i] = key;
-                self.sums[i] = u128::from(q);
-                self.used.push(i as u32);
-                if self.used.len() >= TABLE_SLOTS / 2 {
+            if slot.key == Self::EMPTY {
+                *slot = Slot { key, lo: q, hi: 0 };
+                self.used[self.len] = i as u16;
+                self.len += 1;
+                if self.len == TABLE_SLOTS / 2 {
                     self.flush(out);
                 }
                 return;
@@ -216,17 +235,17 @@ impl TileTable {
     }
 
     fn flush(&mut self, out: &mut Vec<Record>) {
-        for &i in &self.used {
-            let (key, sum) = (self.keys[i as usize], self.sums[i as usize]);
+        for &i in &self.used[..self.len] {
+            let slot = &mut self.slots[usize::from(i) & (TABLE_SLOTS - 1)];
             out.push(Record {
-                g: (key >> 32) as u32,
-                group: key as u32,
-                lo: sum as u64,
-                hi: (sum >> 64) as u64,
+                g: (slot.key >> 32) as u32,
+                group: slot.key as u32,
+                lo: slot.lo,
+                hi: slot.hi,
             });
-            self.keys[i as usize] = Self::EMPTY;
+            slot.key = Self::EMPTY;
         }
-        self.used.clear();
+        self.len = 0;
     }
 }
 
@@ -940,7 +959,8 @@ mod tests {
         assert!(sums
             .iter()
             .all(|((g, group), s)| *group == g % 3 && *s == 6));
-        assert!(table.keys.iter().all(|k| *k == TileTable::EMPTY));
+        assert!(table.slots.iter().all(|s| s.key == TileTable::EMPTY));
+        assert_eq!(table.len, 0);
     }
 
     #[test]
