@@ -964,6 +964,22 @@ mod tests {
     }
 
     #[test]
+    fn tile_table_sums_carry_into_the_high_half() {
+        let mut table = TileTable::new();
+        let mut out = Vec::new();
+        let big = u64::MAX - 2;
+        for _ in 0..5 {
+            table.add(9, 4, big, &mut out);
+        }
+        table.add(9, 4, 11, &mut out);
+        table.add(9, 5, 1, &mut out);
+        table.flush(&mut out);
+        let mut sums: Vec<(u32, u32, u128)> = out.iter().map(|r| (r.g, r.group, r.sum())).collect();
+        sums.sort_unstable();
+        assert_eq!(sums, [(9, 4, 5 * u128::from(big) + 11), (9, 5, 1)]);
+    }
+
+    #[test]
     fn inconsistent_view_buffers_are_errors() {
         let mut acc = Accumulator::new(10, 2, 2);
         let labels = [0u16, 1, 1, 0];
