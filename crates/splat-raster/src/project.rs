@@ -465,6 +465,18 @@ impl Splat {
     }
 }
 
+/// Where [`project_chunk`] appends the splats it keeps (in id order).
+pub(crate) trait SplatSink {
+    fn push(&mut self, splat: Splat);
+}
+
+impl SplatSink for Vec<Splat> {
+    #[inline(always)]
+    fn push(&mut self, splat: Splat) {
+        Vec::push(self, splat);
+    }
+}
+
 /// Projects Gaussians `ids` into `cam` and appends, in id order, the [`Splat`] of each one
 /// that [`project`] followed by [`Splat::new`] keeps: bit for bit the same values (the same
 /// operations in the same order; the unit tests compare the two paths), for less work:
@@ -482,7 +494,7 @@ pub(crate) fn project_chunk(
     campos: [f64; 3],
     ids: Range<usize>,
     level: Level,
-    out: &mut Vec<Splat>,
+    out: &mut impl SplatSink,
 ) {
     project_chunk_with(&ViewConsts::new(cam), g, prep, campos, ids, level, out);
 }
@@ -498,7 +510,7 @@ fn project_chunk_with(
     campos: [f64; 3],
     ids: Range<usize>,
     level: Level,
-    out: &mut Vec<Splat>,
+    out: &mut impl SplatSink,
 ) {
     let tail = match level {
         Level::Portable => project_batches(view, g, prep, campos, ids.clone(), out),
@@ -524,7 +536,7 @@ fn project_batches_avx512(
     prep: &Prepared,
     campos: [f64; 3],
     ids: Range<usize>,
-    out: &mut Vec<Splat>,
+    out: &mut impl SplatSink,
 ) -> usize {
     project_batches(view, g, prep, campos, ids, out)
 }
@@ -538,7 +550,7 @@ fn project_batches(
     prep: &Prepared,
     campos: [f64; 3],
     ids: Range<usize>,
-    out: &mut Vec<Splat>,
+    out: &mut impl SplatSink,
 ) -> usize {
     let mut first = ids.start;
     let mut lanes = ProjectedLanes::<BATCH>::default();
@@ -610,7 +622,7 @@ impl<const L: usize> ProjectedLanes<L> {
         prep: &Prepared,
         campos: [f64; 3],
         first: usize,
-        out: &mut Vec<Splat>,
+        out: &mut impl SplatSink,
     ) {
         for l in 0..L {
             if !self.keep[l] {

@@ -10,7 +10,7 @@ use wide::f32x4;
 
 use crate::camera::ViewCamera;
 use crate::error::{RasterError, Result};
-use crate::project::{prepare, project, project_chunk, Prepared, Projected, Splat};
+use crate::project::{prepare, project, project_chunk, Prepared, Projected, Splat, SplatSink};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::avx512::F32x16;
 use crate::simd::{prefetch, Lanes, Level};
@@ -388,28 +388,31 @@ const PROJECT_CHUNK: usize = 1 << CHUNK_BITS;
 const CHUNK_BITS: u32 = 14;
 
 /// Sort key of a splat: its camera depth (positive, finite: the bits of a positive f32
-/// order as the value) above its position, chunk-major. Chunks cover ascending id ranges,
-/// so equal depths order by id, as the (depth, id) rule requires.
-fn depth_key(sp: &Splat, chunk: usize, index: usize) -> u64 {
-    (u64::from(sp.depth.to_bits()) << 32) | ((chunk as u64) << CHUNK_BITS) | index as u64
+/// order as the value) above its position in the view's splats. The splats are stored in
+/// id order (chunk by chunk, each chunk's survivors in id order), so equal depths order by
+/// id, as the (depth, id) rule requires.
+fn depth_key(depth: f32, position: u32) -> u64 {
+    (u64::from(depth.to_bits()) << 32) | u64::from(position)
 }
 
-/// (chunk, index) of a [`depth_key`].
-fn key_position(key: u64) -> (usize, usize) {
-    let pos = (key & u64::from(u32::MAX)) as usize;
-    (pos >> CHUNK_BITS, pos & (PROJECT_CHUNK - 1))
+/// The position of a [`depth_key`].
+fn key_position(key: u64) -> u32 {
+    key as u32
 }
 
 /// Per-view binning buffers, reused between views.
 #[derive(Debug, Default)]
 struct ViewScratch {
-    /// Projected splats of each chunk of [`PROJECT_CHUNK`] Gaussians, in id order, with
-    /// their [`depth_key`]s (computed by the chunk's job while its splats are in cache).
-    chunks: Vec<(Vec<Splat>, Vec<u64>)>,
-    /// [`depth_key`]s of the splats of `chunks`, sorted.
-    keys: Vec<u64>,
-    /// The splats in (depth, id) order.
+    /// The projected splats: chunk c of [`PROJECT_CHUNK`] Gaussians keeps its splats, in
+    /// id order, from position `c * PROJECT_CHUNK` on (the rest of its range is unused);
+    /// the tile lists index it. As long as the Gaussians, so views reuse it.
     splats: Vec<Splat>,
+    /// Per chunk: its splats' sort records, in id order, and their depth range.
+    chunks: Vec<ChunkRecords>,
+    /// Splats of this view.
+    visible: usize,
+    /// Every splat's sort record in (depth, id) order.
+    depth_order: Vec<DepthRecord>,
     row_start: Vec<usize>,
     /// Per tile row, its splats in depth order: index and pixel rectangle (a copy of the
     /// rectangle, so that bucketing the row by tile column reads memory in order).
@@ -543,7 +546,7 @@ impl<'g> Rasterizer<'g> {
         cam.check(view)?;
         out.resize(view, cam, opts);
         let mut phases = self.bin(cam, &mut out.scratch);
-        let visible = out.scratch.splats.len();
+        let visible = out.scratch.visible;
         let t0 = Instant::now();
         let (tile_pairs, counts) = blend(cam, opts, self.level, out);
         phases.blend = t0.elapsed();
@@ -614,7 +617,7 @@ impl<'g> Rasterizer<'g> {
             )
             .reduce(|| (0, BlendCounts::default()), add_rows);
         phases.blend = t0.elapsed();
-        let visible = s.splats.len();
+        let visible = s.visible;
         scratch.0.phases = phases;
         Ok(RenderStats {
             visible,
@@ -649,21 +652,29 @@ impl<'g> Rasterizer<'g> {
     /// Projects every Gaussian, sorts the survivors by (depth, id) and buckets them by
     /// tile row (each row's list stays in depth order).
     ///
-    /// Gaussians are projected in fixed chunks into reused per-chunk buffers (no per-view
-    /// allocation, and the chunking does not depend on the thread count), the survivors
-    /// are ordered by sorting 8-byte keys (depth bits, chunk, index) rather than moving the
-    /// 64-byte splats around, and are gathered once into depth order.
+    /// Gaussians are projected in fixed chunks (the chunking does not depend on the thread
+    /// count), each straight into its own range of the view's reused splat buffer, where
+    /// the tiles read them: the 64-byte splats are never moved into depth order, since a
+    /// tile reads its splats in an order that no global arrangement serves. Only 16-byte
+    /// records (depth key, rectangle), made while each splat is in cache, are sorted.
     fn bin(&self, cam: &ViewCamera, s: &mut ViewScratch) -> Phases {
         let t0 = Instant::now();
         let campos = cam.center();
-        let chunks = self.len().div_ceil(PROJECT_CHUNK);
-        s.chunks.resize_with(chunks, Default::default);
+        let n = self.len();
+        if s.splats.len() != n {
+            s.splats.clear();
+            s.splats.resize(n, UNUSED_SPLAT);
+        }
         s.chunks
-            .par_iter_mut()
+            .resize_with(n.div_ceil(PROJECT_CHUNK), Default::default);
+        s.splats
+            .par_chunks_mut(PROJECT_CHUNK)
+            .zip(s.chunks.par_iter_mut())
             .enumerate()
-            .for_each(|(c, (out, keys))| {
-                out.clear();
-                let ids = c * PROJECT_CHUNK..((c + 1) * PROJECT_CHUNK).min(self.len());
+            .for_each(|(c, (splats, records))| {
+                let first = c * PROJECT_CHUNK;
+                let ids = first..first + splats.len();
+                let mut out = ChunkOut::new(splats, first, records);
                 project_chunk(
                     self.gaussians,
                     &self.prep,
@@ -671,31 +682,19 @@ impl<'g> Rasterizer<'g> {
                     campos,
                     ids,
                     self.level,
-                    out,
+                    &mut out,
                 );
-                keys.clear();
-                keys.extend(out.iter().enumerate().map(|(i, sp)| depth_key(sp, c, i)));
             });
+        s.visible = s.chunks.iter().map(|c| c.records.len()).sum();
         let project = t0.elapsed();
         let t0 = Instant::now();
-        s.keys.clear();
-        for (_, keys) in &s.chunks {
-            s.keys.extend_from_slice(keys);
-        }
-        // Unique keys (ids differ), so the unstable sort is deterministic.
-        s.keys.par_sort_unstable();
-        s.splats.clear();
-        let chunks = &s.chunks;
-        s.splats.par_extend(s.keys.par_iter().map(|&key| {
-            let (c, i) = key_position(key);
-            chunks[c].0[i]
-        }));
+        sort_by_depth(&s.chunks, s.visible, &mut s.depth_order);
         let sort = t0.elapsed();
 
         let t0 = Instant::now();
         let (_, tiles_y) = cam.tiles();
         bucket_by_row(
-            &s.splats,
+            &s.depth_order,
             tiles_y,
             ROW_BUCKET_BLOCK,
             &mut s.row_start,
@@ -710,33 +709,187 @@ impl<'g> Rasterizer<'g> {
     }
 }
 
-/// A tile row's entry: the splat's index in depth order and its pixel rectangle (carried
-/// along so that bucketing by tile column reads no splat).
+/// A splat's place in the depth order: its [`depth_key`] and its pixel rectangle (carried
+/// along so that bucketing by tile row reads no splat).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct DepthRecord {
+    key: u64,
+    rect: [u16; 4],
+}
+
+/// One projection chunk's [`DepthRecord`]s (in id order) and the range of their depth bits.
+#[derive(Debug, Default)]
+struct ChunkRecords {
+    records: Vec<DepthRecord>,
+    depth_bits: Option<(u32, u32)>,
+}
+
+/// The [`SplatSink`] of one projection chunk: splats go to the chunk's range of the view's
+/// splats, and their sort records are made while they are in cache.
+struct ChunkOut<'a> {
+    splats: &'a mut [Splat],
+    len: usize,
+    first: usize,
+    records: &'a mut ChunkRecords,
+}
+
+impl<'a> ChunkOut<'a> {
+    fn new(splats: &'a mut [Splat], first: usize, records: &'a mut ChunkRecords) -> Self {
+        records.records.clear();
+        records.depth_bits = None;
+        ChunkOut {
+            splats,
+            len: 0,
+            first,
+            records,
+        }
+    }
+}
+
+impl SplatSink for ChunkOut<'_> {
+    #[inline(always)]
+    fn push(&mut self, splat: Splat) {
+        // At most one splat per Gaussian of the chunk, so `len` stays in range; the id is
+        // a u32, so is the position.
+        let position = (self.first + self.len) as u32;
+        let bits = splat.depth.to_bits();
+        self.records.depth_bits = Some(match self.records.depth_bits {
+            Some((lo, hi)) => (lo.min(bits), hi.max(bits)),
+            None => (bits, bits),
+        });
+        self.records.records.push(DepthRecord {
+            key: depth_key(splat.depth, position),
+            rect: splat.rect,
+        });
+        self.splats[self.len] = splat;
+        self.len += 1;
+    }
+}
+
+/// Average splats per bucket of [`sort_by_depth`]: small enough that a bucket sorts in L1.
+const SPLATS_PER_BUCKET: usize = 64;
+/// Projection chunks per job of [`sort_by_depth`]'s counting and scattering.
+const SORT_BLOCK_CHUNKS: usize = 8;
+
+/// Writes every chunk's records into `out` in key order, i.e. by (depth, id).
+///
+/// One pass of a most-significant-digit radix sort, then a comparison sort per bucket:
+/// the buckets are ranges of the depth bits (the top bits of the key) sized to hold
+/// [`SPLATS_PER_BUCKET`] splats on average; blocks of chunks count their buckets, then
+/// scatter into their own slice of every bucket in parallel; then the buckets are sorted
+/// in parallel. The keys are unique (positions differ), so the order is the one sorted
+/// order whatever the blocks, buckets or threads.
+fn sort_by_depth(chunks: &[ChunkRecords], visible: usize, out: &mut Vec<DepthRecord>) {
+    out.clear();
+    out.resize(visible, DepthRecord::default());
+    let Some((lo, hi)) = chunks
+        .iter()
+        .filter_map(|c| c.depth_bits)
+        .reduce(|a, b| (a.0.min(b.0), a.1.max(b.1)))
+    else {
+        return;
+    };
+    let buckets_log2 = (visible / SPLATS_PER_BUCKET).max(1).ilog2().min(16);
+    let span_bits = u32::BITS - (hi - lo).leading_zeros();
+    let shift = span_bits.saturating_sub(buckets_log2);
+    let buckets = ((hi - lo) >> shift) as usize + 1;
+    let bucket_of = |r: &DepthRecord| (((r.key >> 32) as u32 - lo) >> shift) as usize;
+    let blocks: Vec<&[ChunkRecords]> = chunks.chunks(SORT_BLOCK_CHUNKS).collect();
+    let counts: Vec<Vec<usize>> = blocks
+        .par_iter()
+        .map(|block| {
+            let mut n = vec![0usize; buckets];
+            for r in block.iter().flat_map(|c| &c.records) {
+                n[bucket_of(r)] += 1;
+            }
+            n
+        })
+        .collect();
+    // Carve every bucket into one slice per block (in block order), and keep each whole
+    // bucket's range for the sorts.
+    let mut per_block: Vec<Vec<&mut [DepthRecord]>> =
+        counts.iter().map(|_| Vec::with_capacity(buckets)).collect();
+    let mut bounds = Vec::with_capacity(buckets + 1);
+    bounds.push(0);
+    let mut rest: &mut [DepthRecord] = out;
+    for b in 0..buckets {
+        for (block, n) in counts.iter().enumerate() {
+            let (now, later) = std::mem::take(&mut rest).split_at_mut(n[b]);
+            per_block[block].push(now);
+            rest = later;
+        }
+        bounds.push(bounds[b] + counts.iter().map(|n| n[b]).sum::<usize>());
+    }
+    blocks
+        .par_iter()
+        .zip(per_block)
+        .for_each(|(block, mut slices)| {
+            let mut fill = vec![0usize; buckets];
+            for &r in block.iter().flat_map(|c| &c.records) {
+                let b = bucket_of(&r);
+                slices[b][fill[b]] = r;
+                fill[b] += 1;
+            }
+        });
+    let mut rest: &mut [DepthRecord] = out;
+    let mut bucket_slices = Vec::with_capacity(buckets);
+    for w in bounds.windows(2) {
+        let (now, later) = std::mem::take(&mut rest).split_at_mut(w[1] - w[0]);
+        bucket_slices.push(now);
+        rest = later;
+    }
+    bucket_slices
+        .into_par_iter()
+        .with_min_len(64)
+        .for_each(|bucket| bucket.sort_unstable_by_key(|r| r.key));
+}
+
+/// Filler of the view's splat buffer where a chunk kept fewer splats than Gaussians (never
+/// read).
+const UNUSED_SPLAT: Splat = Splat {
+    x: 0.0,
+    y: 0.0,
+    a: 0.0,
+    b: 0.0,
+    c: 0.0,
+    opacity: 0.0,
+    color: [0.0; 3],
+    depth: 0.0,
+    id: u32::MAX,
+    two_a_tau: 0.0,
+    det: 0.0,
+    inv_a: 0.0,
+    rect: [0; 4],
+};
+
+/// A tile row's entry: the splat's position in the view's splats and its pixel rectangle
+/// (carried along so that bucketing reads no splat).
 type RowEntry = (u32, [u16; 4]);
 
 /// Splats per job of [`bucket_by_row`] (fixed, so the jobs do not depend on the thread
 /// count; the result does not depend on them at all).
 const ROW_BUCKET_BLOCK: usize = 1 << 16;
 
-/// Lists the depth-ordered `splats` of every tile row in order: row ty's entries are
-/// `entries[start[ty]..start[ty + 1]]`. Blocks of `block` splats count their rows in
-/// parallel, then each block fills its own slice of every row (the slices follow the block
-/// order, so every row stays in depth order and the result does not depend on `block`).
+/// Lists the depth-ordered `splats` (their positions and rectangles) of every tile row in
+/// order: row ty's entries are `entries[start[ty]..start[ty + 1]]`. Blocks of `block` splats count
+/// their rows in parallel, then each block fills its own slice of every row (the slices
+/// follow the block order, so every row stays in depth order and the result does not
+/// depend on `block`).
 fn bucket_by_row(
-    splats: &[Splat],
+    splats: &[DepthRecord],
     tiles_y: usize,
     block: usize,
     start: &mut Vec<usize>,
     entries: &mut Vec<RowEntry>,
 ) {
-    let rows_of = |sp: &Splat| usize::from(sp.rect[2]) / TILE..usize::from(sp.rect[3]) / TILE + 1;
+    let rows_of = |rect: &[u16; 4]| usize::from(rect[2]) / TILE..usize::from(rect[3]) / TILE + 1;
     let block = block.max(1);
     let counts: Vec<Vec<usize>> = splats
         .par_chunks(block)
         .map(|block| {
             let mut n = vec![0usize; tiles_y];
-            for sp in block {
-                for c in &mut n[rows_of(sp)] {
+            for r in block {
+                for c in &mut n[rows_of(&r.rect)] {
                     *c += 1;
                 }
             }
@@ -765,13 +918,11 @@ fn bucket_by_row(
     splats
         .par_chunks(block)
         .zip(per_block)
-        .enumerate()
-        .for_each(|(b, (chunk, mut rows))| {
+        .for_each(|(chunk, mut rows)| {
             let mut fill = vec![0usize; tiles_y];
-            let first = b * block;
-            for (i, sp) in chunk.iter().enumerate() {
-                for ty in rows_of(sp) {
-                    rows[ty][fill[ty]] = ((first + i) as u32, sp.rect);
+            for r in chunk {
+                for ty in rows_of(&r.rect) {
+                    rows[ty][fill[ty]] = (key_position(r.key), r.rect);
                     fill[ty] += 1;
                 }
             }
@@ -1751,59 +1902,119 @@ fn write_tile(ctx: &Ctx<'_>, row: &mut RowOut<'_>, [x0, x1, y0, y1]: [usize; 4],
 
 #[cfg(test)]
 mod tests {
-    use super::{bucket_by_row, depth_key, key_position, RowEntry, Splat, PROJECT_CHUNK, TILE};
+    use super::{
+        bucket_by_row, depth_key, key_position, sort_by_depth, ChunkRecords, DepthRecord, RowEntry,
+        TILE,
+    };
 
-    fn splat_at(depth: f32) -> Splat {
-        Splat {
-            x: 0.0,
-            y: 0.0,
-            a: 1.0,
-            b: 0.0,
-            c: 1.0,
-            opacity: 0.5,
-            color: [0.0; 3],
-            depth,
-            id: 0,
-            two_a_tau: 1.0,
-            det: 1.0,
-            inv_a: 1.0,
-            rect: [0; 4],
+    /// A small LCG: deterministic test values below `m`.
+    fn lcg(seed: u64) -> impl FnMut(u32) -> u32 {
+        let mut state = seed;
+        move |m| {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            ((state >> 33) as u32) % m
+        }
+    }
+
+    /// Chunks of records as the projection makes them: positions ascending within and
+    /// across chunks, depths from `depth`.
+    fn chunks_of(sizes: &[usize], mut depth: impl FnMut() -> f32) -> Vec<ChunkRecords> {
+        let mut position = 0u32;
+        sizes
+            .iter()
+            .map(|&n| {
+                let records: Vec<DepthRecord> = (0..n)
+                    .map(|_| {
+                        position += 3; // gaps, as where a chunk keeps few of its Gaussians
+                        let d = depth();
+                        DepthRecord {
+                            key: depth_key(d, position),
+                            rect: [position as u16, 0, 0, 0],
+                        }
+                    })
+                    .collect();
+                let bits = records.iter().map(|r| (r.key >> 32) as u32);
+                let depth_bits = bits.clone().min().zip(bits.max());
+                ChunkRecords {
+                    records,
+                    depth_bits,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn sort_by_depth_equals_a_plain_sort() {
+        let mut next = lcg(7);
+        type Depths = Box<dyn FnMut(&mut dyn FnMut(u32) -> u32) -> f32>;
+        let cases: Vec<(&str, Vec<usize>, Depths)> = vec![
+            (
+                "uniform",
+                vec![5000, 3000, 0, 7000],
+                Box::new(|n| 1.0 + n(1 << 20) as f32 * 1e-5),
+            ),
+            (
+                "many ties",
+                vec![4000, 4000],
+                Box::new(|n| 0.5 * (1 + n(7)) as f32),
+            ),
+            ("one depth", vec![900, 100], Box::new(|_| 3.25)),
+            (
+                "binades apart",
+                vec![2000; 5],
+                Box::new(|n| [1e-3, 0.7, 2.0, 1e4][n(4) as usize] * (1.0 + n(1000) as f32 * 1e-3)),
+            ),
+            ("few", vec![1, 0, 2], Box::new(|n| n(5) as f32 + 0.1)),
+            ("none", vec![0, 0], Box::new(|_| 1.0)),
+            (
+                "many chunks",
+                vec![300; 37],
+                Box::new(|n| 0.2 + n(1 << 16) as f32 * 1e-3),
+            ),
+        ];
+        for (name, sizes, mut depth) in cases {
+            let chunks = chunks_of(&sizes, || depth(&mut next));
+            let mut want: Vec<DepthRecord> =
+                chunks.iter().flat_map(|c| c.records.clone()).collect();
+            want.sort_unstable_by_key(|r| r.key);
+            let mut got = vec![DepthRecord::default(); 3];
+            sort_by_depth(&chunks, want.len(), &mut got);
+            assert_eq!(got, want, "{name}");
         }
     }
 
     #[test]
-    fn depth_keys_order_by_depth_then_chunk_then_index_and_round_trip() {
-        let last = PROJECT_CHUNK - 1;
+    fn depth_keys_order_by_depth_then_position_and_round_trip() {
+        let last = u32::MAX;
         let mut keys = vec![
-            (depth_key(&splat_at(2.0), 0, 5), (0, 5)),
-            (depth_key(&splat_at(0.25), 7, last), (7, last)),
-            (depth_key(&splat_at(1.0), 3, 0), (3, 0)),
-            (depth_key(&splat_at(1.0), 2, last), (2, last)),
-            (depth_key(&splat_at(1.0), 2, 4), (2, 4)),
-            (depth_key(&splat_at(1.0e30), 0, 0), (0, 0)),
+            (depth_key(2.0, 5), 5),
+            (depth_key(0.25, last), last),
+            (depth_key(1.0, 70_000), 70_000),
+            (depth_key(1.0, 16_383), 16_383),
+            (depth_key(1.0, 4), 4),
+            (depth_key(1.0e30, 0), 0),
         ];
         keys.sort_unstable();
-        let order: Vec<(usize, usize)> = keys.iter().map(|k| k.1).collect();
+        let order: Vec<u32> = keys.iter().map(|k| k.1).collect();
         assert_eq!(
             order,
-            [(7, last), (2, 4), (2, last), (3, 0), (0, 5), (0, 0)],
-            "depth first, equal depths by (chunk, index), i.e. by Gaussian id"
+            [last, 4, 16_383, 70_000, 5, 0],
+            "depth first, equal depths by position, i.e. by Gaussian id"
         );
-        for (key, pos) in keys {
-            assert_eq!(key_position(key), pos);
+        for (key, position) in keys {
+            assert_eq!(key_position(key), position);
         }
     }
 
     /// Sequential reference: every splat appended to each tile row its rectangle spans.
-    fn rows_by_sequential_append(splats: &[Splat], tiles_y: usize) -> Vec<Vec<RowEntry>> {
+    fn rows_by_sequential_append(splats: &[DepthRecord], tiles_y: usize) -> Vec<Vec<RowEntry>> {
         let mut rows = vec![Vec::new(); tiles_y];
-        for (i, sp) in splats.iter().enumerate() {
-            let (top, bottom) = (
-                usize::from(sp.rect[2]) / TILE,
-                usize::from(sp.rect[3]) / TILE,
-            );
+        for r in splats {
+            let (top, bottom) = (usize::from(r.rect[2]) / TILE, usize::from(r.rect[3]) / TILE);
             for row in &mut rows[top..=bottom] {
-                row.push((i as u32, sp.rect));
+                row.push((key_position(r.key), r.rect));
             }
         }
         rows
@@ -1813,23 +2024,17 @@ mod tests {
     fn row_buckets_equal_sequential_append_for_any_block_size() {
         let tiles_y = 9;
         let height = (tiles_y * TILE) as u32;
-        // A small LCG: deterministic rectangles of every height, some on tile borders.
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = |m: u32| {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            ((state >> 33) as u32) % m
-        };
-        let splats: Vec<Splat> = (0..500)
+        // Deterministic rectangles of every height, some on tile borders.
+        let mut next = lcg(0x2545_f491_4f6c_dd1d);
+        // Keys are arbitrary: the buckets keep the given (depth) order.
+        let splats: Vec<DepthRecord> = (0..500)
             .map(|_| {
                 let y0 = next(height);
                 let y1 = (y0 + next(3 * TILE as u32 + 1)).min(height - 1);
                 let x0 = next(200);
-                Splat {
-                    rect: [x0 as u16, (x0 + next(40)) as u16, y0 as u16, y1 as u16],
-                    ..splat_at(1.0)
-                }
+                let rect = [x0 as u16, (x0 + next(40)) as u16, y0 as u16, y1 as u16];
+                let key = depth_key(1.0 + next(9) as f32, next(100_000));
+                DepthRecord { key, rect }
             })
             .collect();
         let want = rows_by_sequential_append(&splats, tiles_y);
