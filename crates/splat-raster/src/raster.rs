@@ -780,7 +780,7 @@ const SORT_BLOCK_CHUNKS: usize = 8;
 /// in parallel. The keys are unique (positions differ), so the order is the one sorted
 /// order whatever the blocks, buckets or threads.
 fn sort_by_depth(chunks: &[ChunkRecords], visible: usize, out: &mut Vec<DepthRecord>) {
-    out.clear();
+    // Every record is overwritten below: only a longer view writes the new tail.
     out.resize(visible, DepthRecord::default());
     let Some((lo, hi)) = chunks
         .iter()
@@ -902,7 +902,7 @@ fn bucket_by_row(
         let row: usize = counts.iter().map(|n| n[ty]).sum();
         start.push(start[ty] + row);
     }
-    entries.clear();
+    // Every entry is overwritten below: only a longer view writes the new tail.
     entries.resize(start[tiles_y], (0, [0; 4]));
     // Carve every row into one slice per block, then hand each block its slices.
     let mut per_block: Vec<Vec<&mut [RowEntry]>> =
@@ -1979,7 +1979,12 @@ mod tests {
             let mut want: Vec<DepthRecord> =
                 chunks.iter().flat_map(|c| c.records.clone()).collect();
             want.sort_unstable_by_key(|r| r.key);
-            let mut got = vec![DepthRecord::default(); 3];
+            // A stale, longer buffer from an earlier view.
+            let stale = DepthRecord {
+                key: 5,
+                rect: [7; 4],
+            };
+            let mut got = vec![stale; 20_000];
             sort_by_depth(&chunks, want.len(), &mut got);
             assert_eq!(got, want, "{name}");
         }
@@ -2039,7 +2044,8 @@ mod tests {
             .collect();
         let want = rows_by_sequential_append(&splats, tiles_y);
         for block in [1, 3, 64, 499, 500, 1 << 16] {
-            let (mut start, mut entries) = (vec![7], vec![(9, [1; 4])]);
+            // Stale, longer buffers from an earlier view.
+            let (mut start, mut entries) = (vec![7], vec![(9, [1; 4]); 2000]);
             bucket_by_row(&splats, tiles_y, block, &mut start, &mut entries);
             assert_eq!(start.len(), tiles_y + 1, "block {block}");
             for (ty, row) in want.iter().enumerate() {
