@@ -106,7 +106,7 @@ pub struct Phases {
     /// Projecting every Gaussian (culling, EWA covariance, SH colour) and making the sort
     /// keys.
     pub project: Duration,
-    /// Sorting the keys by depth and gathering the splats in that order.
+    /// Sorting the splats' records (depth key, rectangle) by depth.
     pub sort: Duration,
     /// Bucketing the depth-ordered splats by tile row.
     pub bucket: Duration,
