@@ -805,21 +805,12 @@ fn sort_by_depth(chunks: &[ChunkRecords], visible: usize, out: &mut Vec<DepthRec
             n
         })
         .collect();
-    // Carve every bucket into one slice per block (in block order), and keep each whole
-    // bucket's range for the sorts.
-    let mut per_block: Vec<Vec<&mut [DepthRecord]>> =
-        counts.iter().map(|_| Vec::with_capacity(buckets)).collect();
     let mut bounds = Vec::with_capacity(buckets + 1);
     bounds.push(0);
-    let mut rest: &mut [DepthRecord] = out;
     for b in 0..buckets {
-        for (block, n) in counts.iter().enumerate() {
-            let (now, later) = std::mem::take(&mut rest).split_at_mut(n[b]);
-            per_block[block].push(now);
-            rest = later;
-        }
         bounds.push(bounds[b] + counts.iter().map(|n| n[b]).sum::<usize>());
     }
+    let per_block = carve_by_block(out, &counts, buckets);
     blocks
         .par_iter()
         .zip(per_block)
@@ -842,6 +833,27 @@ fn sort_by_depth(chunks: &[ChunkRecords], visible: usize, out: &mut Vec<DepthRec
         .into_par_iter()
         .with_min_len(64)
         .for_each(|bucket| bucket.sort_unstable_by_key(|r| r.key));
+}
+
+/// Carves `buf` into one slice per (bucket, block), bucket-major and blocks in order within
+/// a bucket, `counts[block][bucket]` long; returns each block's slices, bucket by bucket.
+/// Blocks that fill their slices in parallel thus write every bucket in block order.
+fn carve_by_block<'a, T>(
+    buf: &'a mut [T],
+    counts: &[Vec<usize>],
+    buckets: usize,
+) -> Vec<Vec<&'a mut [T]>> {
+    let mut per_block: Vec<Vec<&mut [T]>> =
+        counts.iter().map(|_| Vec::with_capacity(buckets)).collect();
+    let mut rest = buf;
+    for b in 0..buckets {
+        for (block, n) in counts.iter().enumerate() {
+            let (now, later) = std::mem::take(&mut rest).split_at_mut(n[b]);
+            per_block[block].push(now);
+            rest = later;
+        }
+    }
+    per_block
 }
 
 /// Filler of the view's splat buffer where a chunk kept fewer splats than Gaussians (never
@@ -904,17 +916,7 @@ fn bucket_by_row(
     }
     // Every entry is overwritten below: only a longer view writes the new tail.
     entries.resize(start[tiles_y], (0, [0; 4]));
-    // Carve every row into one slice per block, then hand each block its slices.
-    let mut per_block: Vec<Vec<&mut [RowEntry]>> =
-        counts.iter().map(|_| Vec::with_capacity(tiles_y)).collect();
-    let mut rest: &mut [RowEntry] = entries;
-    for ty in 0..tiles_y {
-        for (b, n) in counts.iter().enumerate() {
-            let (now, later) = std::mem::take(&mut rest).split_at_mut(n[ty]);
-            per_block[b].push(now);
-            rest = later;
-        }
-    }
+    let per_block = carve_by_block(entries, &counts, tiles_y);
     splats
         .par_chunks(block)
         .zip(per_block)
