@@ -883,10 +883,10 @@ type RowEntry = (u32, [u16; 4]);
 const ROW_BUCKET_BLOCK: usize = 1 << 16;
 
 /// Lists the depth-ordered `splats` (their positions and rectangles) of every tile row in
-/// order: row ty's entries are `entries[start[ty]..start[ty + 1]]`. Blocks of `block` splats count
-/// their rows in parallel, then each block fills its own slice of every row (the slices
-/// follow the block order, so every row stays in depth order and the result does not
-/// depend on `block`).
+/// order: row ty's entries are `entries[start[ty]..start[ty + 1]]`. Blocks of `block`
+/// splats count their rows in parallel, then each block fills its own slice of every row
+/// (the slices follow the block order, so every row stays in depth order and the result
+/// does not depend on `block`).
 fn bucket_by_row(
     splats: &[DepthRecord],
     tiles_y: usize,
