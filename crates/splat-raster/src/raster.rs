@@ -409,8 +409,6 @@ struct ViewScratch {
     splats: Vec<Splat>,
     /// Per chunk: its splats' sort records, in id order, and their depth range.
     chunks: Vec<ChunkRecords>,
-    /// Splats of this view.
-    visible: usize,
     /// Every splat's sort record in (depth, id) order.
     depth_order: Vec<DepthRecord>,
     row_start: Vec<usize>,
@@ -546,7 +544,7 @@ impl<'g> Rasterizer<'g> {
         cam.check(view)?;
         out.resize(view, cam, opts);
         let mut phases = self.bin(cam, &mut out.scratch);
-        let visible = out.scratch.visible;
+        let visible = out.scratch.depth_order.len();
         let t0 = Instant::now();
         let (tile_pairs, counts) = blend(cam, opts, self.level, out);
         phases.blend = t0.elapsed();
@@ -617,7 +615,7 @@ impl<'g> Rasterizer<'g> {
             )
             .reduce(|| (0, BlendCounts::default()), add_rows);
         phases.blend = t0.elapsed();
-        let visible = s.visible;
+        let visible = s.depth_order.len();
         scratch.0.phases = phases;
         Ok(RenderStats {
             visible,
@@ -685,10 +683,9 @@ impl<'g> Rasterizer<'g> {
                     &mut out,
                 );
             });
-        s.visible = s.chunks.iter().map(|c| c.records.len()).sum();
         let project = t0.elapsed();
         let t0 = Instant::now();
-        sort_by_depth(&s.chunks, s.visible, &mut s.depth_order);
+        sort_by_depth(&s.chunks, &mut s.depth_order);
         let sort = t0.elapsed();
 
         let t0 = Instant::now();
@@ -779,7 +776,8 @@ const SORT_BLOCK_CHUNKS: usize = 8;
 /// scatter into their own slice of every bucket in parallel; then the buckets are sorted
 /// in parallel. The keys are unique (positions differ), so the order is the one sorted
 /// order whatever the blocks, buckets or threads.
-fn sort_by_depth(chunks: &[ChunkRecords], visible: usize, out: &mut Vec<DepthRecord>) {
+fn sort_by_depth(chunks: &[ChunkRecords], out: &mut Vec<DepthRecord>) {
+    let visible = chunks.iter().map(|c| c.records.len()).sum();
     // Every record is overwritten below: only a longer view writes the new tail.
     out.resize(visible, DepthRecord::default());
     let Some((lo, hi)) = chunks
@@ -805,11 +803,9 @@ fn sort_by_depth(chunks: &[ChunkRecords], visible: usize, out: &mut Vec<DepthRec
             n
         })
         .collect();
-    let mut bounds = Vec::with_capacity(buckets + 1);
-    bounds.push(0);
-    for b in 0..buckets {
-        bounds.push(bounds[b] + counts.iter().map(|n| n[b]).sum::<usize>());
-    }
+    let totals: Vec<usize> = (0..buckets)
+        .map(|b| counts.iter().map(|n| n[b]).sum())
+        .collect();
     let per_block = carve_by_block(out, &counts, buckets);
     blocks
         .par_iter()
@@ -822,14 +818,10 @@ fn sort_by_depth(chunks: &[ChunkRecords], visible: usize, out: &mut Vec<DepthRec
                 fill[b] += 1;
             }
         });
-    let mut rest: &mut [DepthRecord] = out;
-    let mut bucket_slices = Vec::with_capacity(buckets);
-    for w in bounds.windows(2) {
-        let (now, later) = std::mem::take(&mut rest).split_at_mut(w[1] - w[0]);
-        bucket_slices.push(now);
-        rest = later;
-    }
-    bucket_slices
+    // The whole buckets, carved as one block of their totals.
+    let whole = carve_by_block(out, std::slice::from_ref(&totals), buckets).pop();
+    whole
+        .unwrap_or_default()
         .into_par_iter()
         .with_min_len(64)
         .for_each(|bucket| bucket.sort_unstable_by_key(|r| r.key));
@@ -1987,7 +1979,7 @@ mod tests {
                 rect: [7; 4],
             };
             let mut got = vec![stale; 20_000];
-            sort_by_depth(&chunks, want.len(), &mut got);
+            sort_by_depth(&chunks, &mut got);
             assert_eq!(got, want, "{name}");
         }
     }
