@@ -67,7 +67,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::frame::NONE;
-use crate::graph::Link;
+use crate::graph::{self, Link};
 
 /// Pixels whose 3 × 3 neighbourhood (clipped at the image border) carries one label: only
 /// they vote, because a mask's boundary is where segmentation is least certain (jitter,
@@ -580,14 +580,12 @@ pub(crate) fn cluster(
 ) -> (Vec<u32>, Vec<bool>, ConsensusStats) {
     let views = labels.len();
     let masks = offsets.last().map_or(0, |m| *m as usize);
-    let view_of: Vec<usize> = (0..views)
-        .flat_map(|v| std::iter::repeat_n(v, (offsets[v + 1] - offsets[v]) as usize))
-        .collect();
+    let view_of = graph::views_of_masks(offsets);
     let mut votes: Vec<MaskVotes> = (0..masks)
         .into_par_iter()
         .map(|m| {
             let (pts, wts) = (&mask_points.points[m], &mask_points.weights[m]);
-            mask_votes(pts, wts, view_of[m], m as u32, labels, offsets, p)
+            mask_votes(pts, wts, view_of[m] as usize, m as u32, labels, offsets, p)
         })
         .collect();
     // Withdraw the votes of under-segmented masks.
@@ -597,7 +595,7 @@ pub(crate) fn cluster(
         v.containers.retain(|&c| {
             let withdrawn = under[c as usize];
             if withdrawn {
-                let view = view_of[c as usize];
+                let view = view_of[c as usize] as usize;
                 visible[view / 64] &= !(1 << (view % 64));
             }
             !withdrawn
