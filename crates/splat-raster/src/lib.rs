@@ -43,7 +43,11 @@
 //!   per row, widened by 1/64 pixel) is visited.
 //! * **Order and determinism.** Survivors are sorted once by (camera depth as `f32`,
 //!   Gaussian id) and bucketed into tile rows, then into tiles, keeping that order, so every
-//!   tile's list is front to back with ties broken by id. Tiles are independent and each is
+//!   tile's list is front to back with ties broken by id. The projected splats themselves
+//!   are never moved: they stay in *slot* order, the Morton order of the Gaussians' means
+//!   (computed once in [`Rasterizer::new`]), so that a tile's splats lie in a few runs of
+//!   memory whatever order the file has; only the ties of the depth sort look at ids. Tiles
+//!   are independent and each is
 //!   blended by one thread, with no floating-point reduction across threads: outputs are
 //!   bit-identical for any thread count. Rayon runs the tile rows in parallel; a view's
 //!   projection and sort are parallel too.

@@ -36,9 +36,24 @@ pub struct Projected {
     pub opacity: f64,
 }
 
-/// View-independent data of every Gaussian.
+/// View-independent data of every Gaussian, stored by *slot*: the Gaussians in the Morton
+/// order of their means ([`spatial_order`]), not in id order.
+///
+/// Why: a tile's splats are the Gaussians near one line of sight, and the blend reads each
+/// of them from the view's splat buffer, which projection fills in slot order. In id order
+/// (whatever order the file has: a synthetic scene's or a densified one's is spatially
+/// random) those reads are scattered over the whole buffer and stall on memory; in Morton
+/// order a tile's splats lie in a few runs. Depth ties are still broken by id
+/// (`sort_by_depth`), so the slot order changes no output bit.
 #[derive(Debug, Clone)]
 pub(crate) struct Prepared {
+    /// The key of each slot in the spatial order: Morton code above the Gaussian id (see
+    /// [`Prepared::id`]). Kept whole rather than narrowed to the ids: freeing the sort's
+    /// key buffer raised glibc's dynamic mmap threshold, and fuse bench's peak RSS by
+    /// ~100 MB (later mid-size buffers came from the heap and stayed).
+    pub order: Vec<u64>,
+    /// The mean of each slot's Gaussian.
+    pub means: Vec<[f32; 3]>,
     /// Upper triangle of Σ = R S Sᵀ Rᵀ: xx, xy, xz, yy, yz, zz.
     pub cov3d: Vec<[f64; 6]>,
     /// sigmoid(opacity logit).
@@ -126,44 +141,104 @@ pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
         }
     }
 
-    let cov3d = (0..n)
+    let order = spatial_order(&g.means);
+    let by_slot = || order.iter().map(|&k| key_id(k) as usize);
+    let cov3d = by_slot()
         .map(|i| covariance_3d(g.log_scales[i], g.rotations[i]))
         .collect();
-    let opacity: Vec<f64> = g
-        .opacity_logits
-        .iter()
-        .map(|l| 1.0 / (1.0 + (-f64::from(*l)).exp()))
-        .collect();
+    let opacity: Vec<f64> = by_slot().map(|i| opacity_of(g.opacity_logits[i])).collect();
     let tau = opacity.iter().map(|&o| footprint_tau(o)).collect();
-    let var_max = g
-        .log_scales
-        .iter()
+    let var_max = by_slot()
         .zip(&opacity)
-        .map(|(s, &o)| {
+        .map(|(i, &o)| {
             let o = o as f32;
             if o.is_nan() || o < ALPHA_MIN {
                 NEVER_DRAWN
             } else {
-                var_bound(*s)
+                var_bound(g.log_scales[i])
             }
         })
         .collect();
     let color0 = if g.sh_degree == 0 {
         // Degree 0 ignores the direction (see `eval_sh`); any unit vector will do.
-        g.sh_dc
-            .iter()
-            .map(|dc| eval_sh(0, *dc, &[], [0.0, 0.0, 1.0]).map(|x| x as f32))
+        by_slot()
+            .map(|i| eval_sh(0, g.sh_dc[i], &[], [0.0, 0.0, 1.0]).map(|x| x as f32))
             .collect()
     } else {
         Vec::new()
     };
     Ok(Prepared {
+        means: by_slot().map(|i| g.means[i]).collect(),
+        order,
         cov3d,
         opacity,
         tau,
         var_max,
         color0,
     })
+}
+
+/// Bits per axis of the Morton code of [`spatial_order`]: 1024 cells per axis of the
+/// scene's bounding box, far finer than a tile's share of a scene.
+const MORTON_BITS: u32 = 10;
+
+/// The keys (Morton code << 32 | id) of the Gaussians in ascending order, i.e. the ids in
+/// the Morton (Z-curve) order of their means, quantised to [`MORTON_BITS`] per axis over the
+/// means' bounding box, equal codes by id. The means are finite ([`prepare`] checked them).
+/// Deterministic: every key is unique.
+pub(crate) fn spatial_order(means: &[[f32; 3]]) -> Vec<u64> {
+    let (lo, hi) = means.iter().fold(
+        ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
+        |(lo, hi), m| {
+            (
+                std::array::from_fn(|a| lo[a].min(m[a])),
+                std::array::from_fn(|a| hi[a].max(m[a])),
+            )
+        },
+    );
+    let cells = (1u32 << MORTON_BITS) as f64;
+    let quantise = |a: usize, x: f32| -> u64 {
+        let extent = f64::from(hi[a]) - f64::from(lo[a]);
+        if extent > 0.0 {
+            // In [0, cells) up to the rounding at the top end, which the min catches.
+            ((f64::from(x) - f64::from(lo[a])) / extent * cells).min(cells - 1.0) as u64
+        } else {
+            0
+        }
+    };
+    let mut keys: Vec<u64> = means
+        .iter()
+        .enumerate()
+        .map(|(i, m)| {
+            let code = (0..3).fold(0u64, |c, a| c | (spread_bits(quantise(a, m[a])) << a));
+            (code << 32) | i as u64
+        })
+        .collect();
+    keys.sort_unstable();
+    keys
+}
+
+/// The Gaussian id of a [`spatial_order`] key.
+pub(crate) fn key_id(key: u64) -> u32 {
+    key as u32
+}
+
+impl Prepared {
+    /// The Gaussian id of slot `slot`.
+    #[inline(always)]
+    pub fn id(&self, slot: usize) -> u32 {
+        key_id(self.order[slot])
+    }
+}
+
+/// The low [`MORTON_BITS`] bits of `x` moved to every third bit (bit j to bit 3j).
+fn spread_bits(x: u64) -> u64 {
+    (0..MORTON_BITS).fold(0, |s, j| s | (((x >> j) & 1) << (3 * j)))
+}
+
+/// sigmoid(logit) in double precision: the opacity of [`Prepared`] and [`project`].
+fn opacity_of(logit: f32) -> f64 {
+    1.0 / (1.0 + (-f64::from(logit)).exp())
 }
 
 /// An upper bound on the largest eigenvalue of the Σ that [`covariance_3d`] computes from
@@ -219,10 +294,10 @@ pub(crate) fn ceil(x: f64) -> f64 {
 }
 
 /// Projects Gaussian `i` into `cam`; `None` when it is culled (near plane, degenerate 2D
-/// covariance, off the tile grid).
+/// covariance, off the tile grid). The reference path, by id: it computes the
+/// view-independent values of [`Prepared`] itself, with the same expressions.
 pub(crate) fn project(
     g: &Gaussians,
-    prep: &Prepared,
     cam: &ViewCamera,
     campos: [f64; 3],
     i: usize,
@@ -236,7 +311,7 @@ pub(crate) fn project(
     }
     let [u, v] = camera::project(&cam.intrinsics, p);
     let EwaJacobian { t, .. } = ewa_jacobian(cam, p);
-    let [sxx, sxy, sxz, syy, syz, szz] = prep.cov3d[i];
+    let [sxx, sxy, sxz, syy, syz, szz] = covariance_3d(g.log_scales[i], g.rotations[i]);
     let sigma = [[sxx, sxy, sxz], [sxy, syy, syz], [sxz, syz, szz]];
     let Footprint {
         cov2d,
@@ -254,7 +329,7 @@ pub(crate) fn project(
         radius,
         tiles,
         color,
-        opacity: prep.opacity[i],
+        opacity: opacity_of(g.opacity_logits[i]),
     })
 }
 
@@ -465,21 +540,23 @@ impl Splat {
     }
 }
 
-/// Where [`project_chunk`] appends the splats it keeps (in id order).
+/// Where [`project_chunk`] puts the splats it keeps, in slot order, each with its slot.
 pub(crate) trait SplatSink {
-    fn push(&mut self, splat: Splat);
+    fn push(&mut self, slot: usize, splat: Splat);
 }
 
+/// Appends (the tests' sink).
 impl SplatSink for Vec<Splat> {
     #[inline(always)]
-    fn push(&mut self, splat: Splat) {
+    fn push(&mut self, _slot: usize, splat: Splat) {
         Vec::push(self, splat);
     }
 }
 
-/// Projects Gaussians `ids` into `cam` and appends, in id order, the [`Splat`] of each one
-/// that [`project`] followed by [`Splat::new`] keeps: bit for bit the same values (the same
-/// operations in the same order; the unit tests compare the two paths), for less work:
+/// Projects the Gaussians in [`Prepared`] slots `slots` into `cam` and appends, in slot
+/// order, the [`Splat`] of each one that [`project`] followed by [`Splat::new`] keeps: bit
+/// for bit the same values (the same operations in the same order; the unit tests compare
+/// the two paths), for less work:
 /// per-view constants are computed once, Gaussians far off the image are rejected by a
 /// conservative bound before the EWA projection (see [`ViewConsts::surely_off_grid`]),
 /// degree-0 colours come from [`Prepared::color0`], no [`Projected`] is built, and the
@@ -492,11 +569,11 @@ pub(crate) fn project_chunk(
     prep: &Prepared,
     cam: &ViewCamera,
     campos: [f64; 3],
-    ids: Range<usize>,
+    slots: Range<usize>,
     level: Level,
     out: &mut impl SplatSink,
 ) {
-    project_chunk_with(&ViewConsts::new(cam), g, prep, campos, ids, level, out);
+    project_chunk_with(&ViewConsts::new(cam), g, prep, campos, slots, level, out);
 }
 
 /// Gaussians per batch of [`project_chunk`]: one AVX-512 vector of f64.
@@ -508,21 +585,23 @@ fn project_chunk_with(
     g: &Gaussians,
     prep: &Prepared,
     campos: [f64; 3],
-    ids: Range<usize>,
+    slots: Range<usize>,
     level: Level,
     out: &mut impl SplatSink,
 ) {
     let tail = match level {
-        Level::Portable => project_batches(view, g, prep, campos, ids.clone(), out),
+        Level::Portable => project_batches(view, g, prep, campos, slots.clone(), out),
         // SAFETY: `Level::Avx512` is only made after `Level::detect` found AVX-512 F and DQ
         // on this CPU, which is all `project_batches_avx512` needs.
         #[cfg(target_arch = "x86_64")]
         #[allow(unsafe_code)]
-        Level::Avx512 => unsafe { project_batches_avx512(view, g, prep, campos, ids.clone(), out) },
+        Level::Avx512 => unsafe {
+            project_batches_avx512(view, g, prep, campos, slots.clone(), out)
+        },
     };
-    for i in tail..ids.end {
+    for i in tail..slots.end {
         let mut lane = ProjectedLanes::<1>::default();
-        view.project_lanes(g, prep, i, &mut lane);
+        view.project_lanes(prep, i, &mut lane);
         lane.emit(g, prep, campos, i, out);
     }
 }
@@ -535,13 +614,13 @@ fn project_batches_avx512(
     g: &Gaussians,
     prep: &Prepared,
     campos: [f64; 3],
-    ids: Range<usize>,
+    slots: Range<usize>,
     out: &mut impl SplatSink,
 ) -> usize {
-    project_batches(view, g, prep, campos, ids, out)
+    project_batches(view, g, prep, campos, slots, out)
 }
 
-/// Projects the whole batches of `ids`; returns where the remainder (fewer than [`BATCH`]
+/// Projects the whole batches of `slots`; returns where the remainder (fewer than [`BATCH`]
 /// Gaussians) starts.
 #[inline(always)]
 fn project_batches(
@@ -549,18 +628,18 @@ fn project_batches(
     g: &Gaussians,
     prep: &Prepared,
     campos: [f64; 3],
-    ids: Range<usize>,
+    slots: Range<usize>,
     out: &mut impl SplatSink,
 ) -> usize {
-    let mut first = ids.start;
+    let mut first = slots.start;
     let mut lanes = ProjectedLanes::<BATCH>::default();
-    while first + BATCH <= ids.end {
+    while first + BATCH <= slots.end {
         // A batch of Gaussians that are never drawn (zero opacity) costs nothing.
         if prep.var_max[first..first + BATCH]
             .iter()
             .any(|&v| may_be_drawn(v))
         {
-            view.project_lanes(g, prep, first, &mut lanes);
+            view.project_lanes(prep, first, &mut lanes);
             lanes.emit(g, prep, campos, first, out);
         }
         first += BATCH;
@@ -629,13 +708,17 @@ impl<const L: usize> ProjectedLanes<L> {
                 continue;
             }
             let i = first + l;
+            let id = prep.id(i);
             let color = match prep.color0.get(i) {
                 Some(c) => *c,
-                None => sh_color(g, campos, i, g.means[i].map(f64::from)).map(|x| x as f32),
+                None => {
+                    let mean = g.means[id as usize].map(f64::from);
+                    sh_color(g, campos, id as usize, mean).map(|x| x as f32)
+                }
             };
             #[cfg(test)]
             tests::trace(Projected {
-                id: i as u32,
+                id,
                 center: [self.u[l], self.v[l]],
                 depth: self.z[l],
                 cov2d: self.cov2d.map(|c| c[l]),
@@ -646,21 +729,24 @@ impl<const L: usize> ProjectedLanes<L> {
                 opacity: prep.opacity[i],
             });
             let [a, b, c] = self.abc.map(|v| v[l]);
-            out.push(Splat {
-                x: self.u[l] as f32,
-                y: self.v[l] as f32,
-                a,
-                b,
-                c,
-                opacity: prep.opacity[i] as f32,
-                color,
-                depth: self.z[l] as f32,
-                id: i as u32,
-                two_a_tau: self.two_a_tau[l],
-                det: self.det[l],
-                inv_a: self.inv_a[l],
-                rect: self.rect.map(|r| r[l]),
-            });
+            out.push(
+                i,
+                Splat {
+                    x: self.u[l] as f32,
+                    y: self.v[l] as f32,
+                    a,
+                    b,
+                    c,
+                    opacity: prep.opacity[i] as f32,
+                    color,
+                    depth: self.z[l] as f32,
+                    id,
+                    two_a_tau: self.two_a_tau[l],
+                    det: self.det[l],
+                    inv_a: self.inv_a[l],
+                    rect: self.rect.map(|r| r[l]),
+                },
+            );
         }
     }
 }
@@ -760,12 +846,11 @@ impl ViewConsts {
     #[inline(always)]
     fn project_lanes<const L: usize>(
         &self,
-        g: &Gaussians,
         prep: &Prepared,
         first: usize,
         out: &mut ProjectedLanes<L>,
     ) {
-        let means = &g.means[first..first + L];
+        let means = &prep.means[first..first + L];
         let var_max = &prep.var_max[first..first + L];
         let cov3d = &prep.cov3d[first..first + L];
         let taus = &prep.tau[first..first + L];
@@ -1266,18 +1351,20 @@ mod tests {
         b
     }
 
-    /// The splats of `ids` by `project` + `Splat::new`, one Gaussian at a time.
+    /// The splats of the Gaussians in `slots` by `project` + `Splat::new`, one Gaussian at
+    /// a time, by id.
     fn reference(
         g: &Gaussians,
         prep: &Prepared,
         cam: &ViewCamera,
-        ids: Range<usize>,
+        slots: Range<usize>,
     ) -> Vec<Splat> {
-        ids.filter_map(|i| {
-            project(g, prep, cam, cam.center(), i)
-                .and_then(|p| Splat::new(&p, prep.tau[i], cam.width, cam.height))
-        })
-        .collect()
+        slots
+            .filter_map(|slot| {
+                project(g, cam, cam.center(), prep.id(slot) as usize)
+                    .and_then(|p| Splat::new(&p, footprint_tau(p.opacity), cam.width, cam.height))
+            })
+            .collect()
     }
 
     /// Chunks as `bin` makes them, plus ranges that do not start at 0 or are empty.
@@ -1320,7 +1407,7 @@ mod tests {
                 );
                 // And the f64 values behind them, which the f32 rounding would mostly hide.
                 wb.extend(want.iter().map(|s| {
-                    projected_bits(&project(g, prep, cam, cam.center(), s.id as usize).unwrap())
+                    projected_bits(&project(g, cam, cam.center(), s.id as usize).unwrap())
                 }));
                 gb.extend(
                     TRACE.with(|t| t.borrow().iter().map(projected_bits).collect::<Vec<_>>()),
@@ -1388,8 +1475,9 @@ mod tests {
             let kept_ids: std::collections::HashSet<u32> = kept.iter().map(|s| s.id).collect();
             let (mut near, mut pre_culled, mut off_kept, mut off_exact_culled, mut never) =
                 (0, 0, 0, 0, 0);
-            for i in 0..n {
-                if prep.var_max[i] < 0.0 {
+            for slot in 0..n {
+                let i = prep.id(slot) as usize;
+                if prep.var_max[slot] < 0.0 {
                     never += 1;
                     continue;
                 }
@@ -1401,7 +1489,7 @@ mod tests {
                 let [u, v] = camera::project(&cam.intrinsics, p);
                 let off_grid =
                     u < -2.0 || v < -2.0 || u > view.grid[0] + 2.0 || v > view.grid[1] + 2.0;
-                if view.surely_off_grid(u, v, p[2], prep.var_max[i]) {
+                if view.surely_off_grid(u, v, p[2], prep.var_max[slot]) {
                     pre_culled += 1;
                     assert!(!kept_ids.contains(&(i as u32)), "pre-culled {i} is kept");
                 } else if off_grid && kept_ids.contains(&(i as u32)) {
@@ -1422,6 +1510,60 @@ mod tests {
         }
         let too_tight = mismatches(&g, &prep, &cams, |v| v.cull_gain *= 0.6);
         assert!(!too_tight.is_empty());
+    }
+
+    /// The Morton order against a reference that spells each code out as a string of
+    /// bits (bit j of x, y, z, from the top), on random means with duplicates, a flat axis
+    /// and the bounding box's corners.
+    #[test]
+    fn spatial_order_is_the_morton_order_then_id() {
+        let mut state = 11u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let mut means: Vec<[f32; 3]> = (0..3000)
+            .map(|_| [next() * 8.0 - 4.0, next() * 0.01, 2.5])
+            .collect();
+        means.extend_from_within(100..400);
+        means.push([-4.0, 0.0, 2.5]);
+        means.push([4.0, 0.01, 2.5]);
+        let lo = [-4.0f64, 0.0];
+        let hi = means.iter().fold([f64::MIN; 2], |h, m| {
+            [h[0].max(f64::from(m[0])), h[1].max(f64::from(m[1]))]
+        });
+        let lo = [
+            means.iter().map(|m| f64::from(m[0])).fold(lo[0], f64::min),
+            lo[1],
+        ];
+        let cell = |a: usize, x: f32| -> u32 {
+            let t = (f64::from(x) - lo[a]) / (hi[a] - lo[a]);
+            ((t * 1024.0) as u32).min(1023)
+        };
+        let spelled = |m: &[f32; 3]| -> String {
+            let q = [cell(0, m[0]), cell(1, m[1]), 0];
+            (0..MORTON_BITS)
+                .rev()
+                .flat_map(|j| (0..3).rev().map(move |a| (q[a] >> j) & 1))
+                .map(|b| if b == 1 { '1' } else { '0' })
+                .collect()
+        };
+        let mut want: Vec<(String, u32)> = means
+            .iter()
+            .enumerate()
+            .map(|(i, m)| (spelled(m), i as u32))
+            .collect();
+        want.sort();
+        let want: Vec<u32> = want.into_iter().map(|(_, i)| i).collect();
+        let got: Vec<u32> = spatial_order(&means).into_iter().map(key_id).collect();
+        assert_eq!(got, want);
+        // Duplicated means stay in id order, next to each other.
+        let at = |id: u32| got.iter().position(|&g| g == id).unwrap();
+        assert!(at(150) < at(3050) && at(3050) == at(150) + 1);
+        assert_eq!(spatial_order(&[]), Vec::<u64>::new());
+        assert_eq!(spatial_order(&[[1.0; 3]; 3]), vec![0, 1, 2]);
     }
 
     /// `tile_range` and `rect_span` drop floors and ceils that `project` and `Splat::new`

@@ -389,8 +389,8 @@ const CHUNK_BITS: u32 = 14;
 
 /// Sort key of a splat: its camera depth (positive, finite: the bits of a positive f32
 /// order as the value) above its position in the view's splats. The splats are stored in
-/// id order (chunk by chunk, each chunk's survivors in id order), so equal depths order by
-/// id, as the (depth, id) rule requires.
+/// slot order (chunk by chunk, each chunk's survivors in slot order), so equal depths order
+/// by slot; `sort_by_depth` reorders those ties by id, as the (depth, id) rule requires.
 fn depth_key(depth: f32, position: u32) -> u64 {
     (u64::from(depth.to_bits()) << 32) | u64::from(position)
 }
@@ -403,11 +403,11 @@ fn key_position(key: u64) -> u32 {
 /// Per-view binning buffers, reused between views.
 #[derive(Debug, Default)]
 struct ViewScratch {
-    /// The projected splats: chunk c of [`PROJECT_CHUNK`] Gaussians keeps its splats, in
-    /// id order, from position `c * PROJECT_CHUNK` on (the rest of its range is unused);
-    /// the tile lists index it. As long as the Gaussians, so views reuse it.
+    /// The projected splats, each at its Gaussian's slot (the slots of culled Gaussians
+    /// hold stale splats, never read); the tile lists index it. As long as the Gaussians,
+    /// so views reuse it.
     splats: Vec<Splat>,
-    /// Per chunk: its splats' sort records, in id order, and their depth range.
+    /// Per chunk: its splats' sort records, in slot order, and their depth range.
     chunks: Vec<ChunkRecords>,
     /// Every splat's sort record in (depth, id) order.
     depth_order: Vec<DepthRecord>,
@@ -505,7 +505,7 @@ impl<'g> Rasterizer<'g> {
         if index >= self.len() {
             return None;
         }
-        project(self.gaussians, &self.prep, cam, cam.center(), index)
+        project(self.gaussians, cam, cam.center(), index)
     }
 
     /// Renders view `view` of `cameras` into a new [`ViewRender`].
@@ -650,11 +650,13 @@ impl<'g> Rasterizer<'g> {
     /// Projects every Gaussian, sorts the survivors by (depth, id) and buckets them by
     /// tile row (each row's list stays in depth order).
     ///
-    /// Gaussians are projected in fixed chunks (the chunking does not depend on the thread
-    /// count), each straight into its own range of the view's reused splat buffer, where
-    /// the tiles read them: the 64-byte splats are never moved into depth order, since a
-    /// tile reads its splats in an order that no global arrangement serves. Only 16-byte
-    /// records (depth key, rectangle), made while each splat is in cache, are sorted.
+    /// Gaussians are projected in fixed chunks of slots (the chunking does not depend on
+    /// the thread count), each straight into its own range of the view's reused splat
+    /// buffer, where the tiles read them: the 64-byte splats are never moved into depth
+    /// order. They stay in slot order, the Morton order of the Gaussians' means
+    /// ([`Prepared`]), in which a tile's splats lie in a few runs of the buffer; depth
+    /// order scatters them over all of it. Only 16-byte records (depth key, rectangle),
+    /// made while each splat is in cache, are sorted.
     fn bin(&self, cam: &ViewCamera, s: &mut ViewScratch) -> Phases {
         let t0 = Instant::now();
         let campos = cam.center();
@@ -685,7 +687,9 @@ impl<'g> Rasterizer<'g> {
             });
         let project = t0.elapsed();
         let t0 = Instant::now();
-        sort_by_depth(&s.chunks, &mut s.depth_order);
+        // Every position is a slot (the records come from this projection).
+        let id_of = |position: u32| self.prep.id(position as usize);
+        sort_by_depth(&s.chunks, id_of, &mut s.depth_order);
         let sort = t0.elapsed();
 
         let t0 = Instant::now();
@@ -714,18 +718,18 @@ struct DepthRecord {
     rect: [u16; 4],
 }
 
-/// One projection chunk's [`DepthRecord`]s (in id order) and the range of their depth bits.
+/// One projection chunk's [`DepthRecord`]s (in slot order) and the range of their depth bits.
 #[derive(Debug, Default)]
 struct ChunkRecords {
     records: Vec<DepthRecord>,
     depth_bits: Option<(u32, u32)>,
 }
 
-/// The [`SplatSink`] of one projection chunk: splats go to the chunk's range of the view's
-/// splats, and their sort records are made while they are in cache.
+/// The [`SplatSink`] of one projection chunk: each splat goes to its slot in the view's
+/// splats (culled slots keep whatever they held), and its sort record is made while it is
+/// in cache.
 struct ChunkOut<'a> {
     splats: &'a mut [Splat],
-    len: usize,
     first: usize,
     records: &'a mut ChunkRecords,
 }
@@ -736,7 +740,6 @@ impl<'a> ChunkOut<'a> {
         records.depth_bits = None;
         ChunkOut {
             splats,
-            len: 0,
             first,
             records,
         }
@@ -745,10 +748,10 @@ impl<'a> ChunkOut<'a> {
 
 impl SplatSink for ChunkOut<'_> {
     #[inline(always)]
-    fn push(&mut self, splat: Splat) {
-        // At most one splat per Gaussian of the chunk, so `len` stays in range; the id is
-        // a u32, so is the position.
-        let position = (self.first + self.len) as u32;
+    fn push(&mut self, slot: usize, splat: Splat) {
+        // The slots of the chunk are `first..first + splats.len()`; ids, and so slots, are
+        // u32.
+        let position = slot as u32;
         let bits = splat.depth.to_bits();
         self.records.depth_bits = Some(match self.records.depth_bits {
             Some((lo, hi)) => (lo.min(bits), hi.max(bits)),
@@ -758,8 +761,9 @@ impl SplatSink for ChunkOut<'_> {
             key: depth_key(splat.depth, position),
             rect: splat.rect,
         });
-        self.splats[self.len] = splat;
-        self.len += 1;
+        if let Some(s) = self.splats.get_mut(slot - self.first) {
+            *s = splat;
+        }
     }
 }
 
@@ -768,15 +772,21 @@ const SPLATS_PER_BUCKET: usize = 64;
 /// Projection chunks per job of [`sort_by_depth`]'s counting and scattering.
 const SORT_BLOCK_CHUNKS: usize = 8;
 
-/// Writes every chunk's records into `out` in key order, i.e. by (depth, id).
+/// Writes every chunk's records into `out` by (depth, id), `id_of` giving the Gaussian id at
+/// each position (a slot).
 ///
 /// One pass of a most-significant-digit radix sort, then a comparison sort per bucket:
 /// the buckets are ranges of the depth bits (the top bits of the key) sized to hold
 /// [`SPLATS_PER_BUCKET`] splats on average; blocks of chunks count their buckets, then
 /// scatter into their own slice of every bucket in parallel; then the buckets are sorted
-/// in parallel. The keys are unique (positions differ), so the order is the one sorted
-/// order whatever the blocks, buckets or threads.
-fn sort_by_depth(chunks: &[ChunkRecords], out: &mut Vec<DepthRecord>) {
+/// in parallel by key, i.e. by (depth, slot), and each run of equal depths (rare, and never
+/// split between buckets) is put in id order. The keys are unique (positions differ), so
+/// the order is the one sorted order whatever the blocks, buckets or threads.
+fn sort_by_depth(
+    chunks: &[ChunkRecords],
+    id_of: impl Fn(u32) -> u32 + Sync,
+    out: &mut Vec<DepthRecord>,
+) {
     let visible = chunks.iter().map(|c| c.records.len()).sum();
     // Every record is overwritten below: only a longer view writes the new tail.
     out.resize(visible, DepthRecord::default());
@@ -824,7 +834,29 @@ fn sort_by_depth(chunks: &[ChunkRecords], out: &mut Vec<DepthRecord>) {
         .unwrap_or_default()
         .into_par_iter()
         .with_min_len(64)
-        .for_each(|bucket| bucket.sort_unstable_by_key(|r| r.key));
+        .for_each(|bucket| {
+            bucket.sort_unstable_by_key(|r| r.key);
+            order_ties_by_id(bucket, &id_of);
+        });
+}
+
+/// Puts each run of equal depths of a key-sorted `records` in id order (the keys order it
+/// by slot). Runs are rare and mostly pairs (equal f32 depths by chance, or duplicated
+/// Gaussians).
+fn order_ties_by_id(records: &mut [DepthRecord], id_of: &impl Fn(u32) -> u32) {
+    let depth = |r: &DepthRecord| r.key >> 32;
+    let id = |r: &DepthRecord| id_of(key_position(r.key));
+    for run in records.chunk_by_mut(|a, b| depth(a) == depth(b)) {
+        match run {
+            [_] => {}
+            [a, b] => {
+                if id(a) > id(b) {
+                    std::mem::swap(a, b);
+                }
+            }
+            _ => run.sort_unstable_by_key(id),
+        }
+    }
 }
 
 /// Carves `buf` into one slice per (bucket, block), bucket-major and blocks in order within
@@ -848,8 +880,7 @@ fn carve_by_block<'a, T>(
     per_block
 }
 
-/// Filler of the view's splat buffer where a chunk kept fewer splats than Gaussians (never
-/// read).
+/// Filler of the view's splat buffer in the slots of culled Gaussians (never read).
 const UNUSED_SPLAT: Splat = Splat {
     x: 0.0,
     y: 0.0,
@@ -1939,8 +1970,10 @@ mod tests {
             .collect()
     }
 
+    /// Sorted by (depth, id), with the ids a shuffle of the positions (slots are not in id
+    /// order), so that ties need their own ordering.
     #[test]
-    fn sort_by_depth_equals_a_plain_sort() {
+    fn sort_by_depth_equals_a_plain_sort_by_depth_then_id() {
         let mut next = lcg(7);
         type Depths = Box<dyn FnMut(&mut dyn FnMut(u32) -> u32) -> f32>;
         let cases: Vec<(&str, Vec<usize>, Depths)> = vec![
@@ -1970,16 +2003,23 @@ mod tests {
         ];
         for (name, sizes, mut depth) in cases {
             let chunks = chunks_of(&sizes, || depth(&mut next));
+            // Positions go up to 3 x the records (`chunks_of`); their ids are a shuffle.
+            let positions = 3 * sizes.iter().sum::<usize>() + 1;
+            let mut ids: Vec<u32> = (0..positions as u32).collect();
+            for i in (1..positions).rev() {
+                ids.swap(i, next(i as u32 + 1) as usize);
+            }
+            let id = |r: &DepthRecord| ids[key_position(r.key) as usize];
             let mut want: Vec<DepthRecord> =
                 chunks.iter().flat_map(|c| c.records.clone()).collect();
-            want.sort_unstable_by_key(|r| r.key);
+            want.sort_unstable_by_key(|r| (r.key >> 32, id(r)));
             // A stale, longer buffer from an earlier view.
             let stale = DepthRecord {
                 key: 5,
                 rect: [7; 4],
             };
             let mut got = vec![stale; 20_000];
-            sort_by_depth(&chunks, &mut got);
+            sort_by_depth(&chunks, |p| ids[p as usize], &mut got);
             assert_eq!(got, want, "{name}");
         }
     }
@@ -2000,7 +2040,7 @@ mod tests {
         assert_eq!(
             order,
             [last, 4, 16_383, 70_000, 5, 0],
-            "depth first, equal depths by position, i.e. by Gaussian id"
+            "depth first, equal depths by position"
         );
         for (key, position) in keys {
             assert_eq!(key_position(key), position);

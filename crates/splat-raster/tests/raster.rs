@@ -1290,6 +1290,34 @@ fn equal_weights_keep_depth_order_and_equal_depths_keep_id_order() {
     let (ids, ws) = out.topk(16, 16).unwrap();
     assert_eq!(ids, &[0, 1]);
     assert!((ws[0] - 0.6).abs() < 1e-6 && (ws[1] - 0.24).abs() < 1e-6);
+
+    // The same at three places on one plane facing the camera, whose spatial (Morton)
+    // order is the reverse of their ids, after two Gaussians behind the camera that come
+    // first in that order (so positions among the projected splats are not the slots):
+    // still blended in id order.
+    let means = vec![
+        [0.02, 0.0, 3.0],
+        [0.0, 0.0, 3.0],
+        [-0.02, 0.0, 3.0],
+        [-1.0, -1.0, -3.0],
+        [-1.0, -0.5, -3.0],
+    ];
+    let g = scene(means, vec![logit(0.6); 5]);
+    let raster = Rasterizer::new(&g).unwrap();
+    let cam = ViewCamera::from_cameras(&cams, 0).unwrap();
+    let depths: Vec<f64> = (0..3)
+        .map(|i| raster.project(&cam, i).unwrap().depth)
+        .collect();
+    assert!(depths.iter().all(|&d| d == depths[0]), "{depths:?}");
+    let out = raster.render_view(&cams, 0, &all_outputs(3)).unwrap();
+    let (ids, ws) = out.topk(16, 16).unwrap();
+    assert_eq!(ids, &[0, 1, 2]);
+    assert!(ws[0] > ws[1] && ws[1] > ws[2], "{ws:?}");
+    let r = ref_render(&g, &cams, 0);
+    assert_eq!(
+        top_k(&r.hits[16 * 33 + 16], 3),
+        vec![(0, ws[0]), (1, ws[1]), (2, ws[2])]
+    );
 }
 
 #[test]
