@@ -331,6 +331,13 @@ def _out_of_range(path: str, tensor: str, index: int, value: Any, expected: str)
     )
 
 
+def _check_class_ids(path: str, tensor: str, values: Any, none: str) -> None:
+    """Every value a class id (>= 0) or -1, which stands for `none`."""
+    i = _first(values < -1)
+    if i is not None:
+        raise _out_of_range(path, tensor, i, int(values[i]), f"a class id >= 0 or -1 for {none}")
+
+
 def _non_finite(path: str, tensor: str, index: int, value: float) -> FormatError:
     return FormatError(
         "non_finite",
@@ -1609,9 +1616,7 @@ def _gaussians(c: Container) -> Gaussians:
         raise _invalid(path, "rotations", f"row {i} is the zero quaternion")
     ids = a.get("class_ids")
     if ids is not None:
-        i = _first(ids < -1)
-        if i is not None:
-            raise _out_of_range(path, "class_ids", i, int(ids[i]), "a class id >= 0 or -1 for none")
+        _check_class_ids(path, "class_ids", ids, "none")
     return Gaussians(
         path=path,
         metadata=dict(c.metadata),
@@ -1883,9 +1888,7 @@ def _prompts(c: Container) -> Prompts:
         raise _invalid(path, "embeddings", f"row {i} ({_debug_str(names[i])}) is all zero")
     ids = a.get("class_ids")
     if ids is not None:
-        i = _first(ids < -1)
-        if i is not None:
-            raise _out_of_range(path, "class_ids", i, int(ids[i]), "a class id >= 0 or -1 for none")
+        _check_class_ids(path, "class_ids", ids, "none")
     return Prompts(
         path=path, metadata=dict(c.metadata), names=names, embeddings=emb, class_ids=ids, dim=dim
     )
@@ -1934,9 +1937,7 @@ def _vertex_labels(c: Container) -> VertexLabels:
     a = r.load()
     path = c.path
     labels = a["labels"]
-    i = _first(labels < -1)
-    if i is not None:
-        raise _out_of_range(path, "labels", i, int(labels[i]), "a class id >= 0 or -1 for no label")
+    _check_class_ids(path, "labels", labels, "no label")
     conf = a.get("confidence")
     if conf is not None:
         _check_finite(path, "confidence", conf)

@@ -441,6 +441,20 @@ pub(crate) fn check_unit_interval(path: &str, tensor: &str, values: &Floats) -> 
     Ok(())
 }
 
+/// Every value a class id (>= 0) or -1, which stands for `none` ("none", "no label").
+pub(crate) fn check_class_ids(path: &str, tensor: &str, values: &[i32], none: &str) -> Result<()> {
+    match values.iter().position(|c| *c < -1) {
+        Some(i) => Err(out_of_range(
+            path,
+            tensor,
+            i,
+            values[i],
+            format!("a class id >= 0 or -1 for {none}"),
+        )),
+        None => Ok(()),
+    }
+}
+
 /// Every index `< limit`, except the reserved `none` value when given.
 pub(crate) fn check_ids<T: Copy + Into<u64>>(
     path: &str,

@@ -3,7 +3,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use crate::check::{
-    check_count, check_finite, check_len, invalid, meta_err, out_of_range, TensorReader,
+    check_class_ids, check_count, check_finite, check_len, invalid, meta_err, TensorReader,
 };
 use crate::container::{Buffer, Container};
 use crate::error::Result;
@@ -102,15 +102,7 @@ impl FileKind for Prompts {
         }
         if let Some(ids) = &self.class_ids {
             check_len(path, "class_ids", ids.len(), q, "values, one per prompt")?;
-            if let Some(i) = ids.iter().position(|c| *c < -1) {
-                return Err(out_of_range(
-                    path,
-                    "class_ids",
-                    i,
-                    ids[i],
-                    "a class id >= 0 or -1 for none",
-                ));
-            }
+            check_class_ids(path, "class_ids", ids, "none")?;
         }
         Ok(())
     }

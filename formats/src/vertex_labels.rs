@@ -2,7 +2,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::check::{check_finite, check_len, out_of_range, TensorReader};
+use crate::check::{check_class_ids, check_finite, check_len, out_of_range, TensorReader};
 use crate::container::{Buffer, Container};
 use crate::error::Result;
 use crate::kind::{FileKind, Kind};
@@ -32,15 +32,7 @@ impl FileKind for VertexLabels {
     }
 
     fn validate(&self, path: &str) -> Result<()> {
-        if let Some(i) = self.labels.iter().position(|l| *l < -1) {
-            return Err(out_of_range(
-                path,
-                "labels",
-                i,
-                self.labels[i],
-                "a class id >= 0 or -1 for no label",
-            ));
-        }
+        check_class_ids(path, "labels", &self.labels, "no label")?;
         if let Some(c) = &self.confidence {
             check_len(
                 path,
