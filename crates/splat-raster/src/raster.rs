@@ -388,9 +388,9 @@ const PROJECT_CHUNK: usize = 1 << CHUNK_BITS;
 const CHUNK_BITS: u32 = 14;
 
 /// Sort key of a splat: its camera depth (positive, finite: the bits of a positive f32
-/// order as the value) above its position in the view's splats. The splats are stored in
-/// slot order (chunk by chunk, each chunk's survivors in slot order), so equal depths order
-/// by slot; `sort_by_depth` reorders those ties by id, as the (depth, id) rule requires.
+/// order as the value) above its position in the view's splats, which is its Gaussian's
+/// slot: equal depths order by slot, and `sort_by_depth` reorders those ties by id, as the
+/// (depth, id) rule requires.
 fn depth_key(depth: f32, position: u32) -> u64 {
     (u64::from(depth.to_bits()) << 32) | u64::from(position)
 }
@@ -779,8 +779,8 @@ const SORT_BLOCK_CHUNKS: usize = 8;
 /// the buckets are ranges of the depth bits (the top bits of the key) sized to hold
 /// [`SPLATS_PER_BUCKET`] splats on average; blocks of chunks count their buckets, then
 /// scatter into their own slice of every bucket in parallel; then the buckets are sorted
-/// in parallel by key, i.e. by (depth, slot), and each run of equal depths (rare, and never
-/// split between buckets) is put in id order. The keys are unique (positions differ), so
+/// in parallel by key, i.e. by (depth, slot), and each run of equal depths (never split
+/// between buckets) is put in id order. The keys are unique (positions differ), so
 /// the order is the one sorted order whatever the blocks, buckets or threads.
 fn sort_by_depth(
     chunks: &[ChunkRecords],
@@ -841,8 +841,8 @@ fn sort_by_depth(
 }
 
 /// Puts each run of equal depths of a key-sorted `records` in id order (the keys order it
-/// by slot). Runs are rare and mostly pairs (equal f32 depths by chance, or duplicated
-/// Gaussians).
+/// by slot). Runs are mostly pairs: f32 depths collide by chance (some 50k splats of a
+/// 1M-Gaussian view), and duplicated Gaussians share a depth.
 fn order_ties_by_id(records: &mut [DepthRecord], id_of: &impl Fn(u32) -> u32) {
     let depth = |r: &DepthRecord| r.key >> 32;
     let id = |r: &DepthRecord| id_of(key_position(r.key));
