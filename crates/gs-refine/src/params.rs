@@ -60,7 +60,7 @@ impl Params {
         }
         // Non-finite means, scales, rotations or SH, zero quaternions: splat-raster's
         // checks, with its typed error naming the Gaussian and tensor.
-        splat_raster::Rasterizer::new(g)?;
+        splat_raster::check_gaussians(g)?;
         let rest = g.sh_rest.as_ref().map(|r| r.to_vec()).unwrap_or_default();
         check("sh_rest", rest.len(), n * rest_coeffs(g.sh_degree) * 3)?;
         Ok(Params {

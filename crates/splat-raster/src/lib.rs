@@ -47,9 +47,8 @@
 //!   are never moved: they stay in *slot* order, the Morton order of the Gaussians' means
 //!   (computed once in [`Rasterizer::new`]), so that a tile's splats lie in a few runs of
 //!   memory whatever order the file has; only the ties of the depth sort look at ids. Tiles
-//!   are independent and each is
-//!   blended by one thread, with no floating-point reduction across threads: outputs are
-//!   bit-identical for any thread count. Rayon runs the tile rows in parallel; a view's
+//!   are independent and each is blended by one thread, with no floating-point reduction
+//!   across threads: outputs are bit-identical for any thread count. Rayon runs the tile rows in parallel; a view's
 //!   projection and sort are parallel too.
 //! * **SIMD.** The per-pixel step runs on groups of pixels of one tile row, branch-free with
 //!   lane masks, and with [`math::exp`], a polynomial `expf` accurate to ~2 ulp (the class
@@ -141,8 +140,8 @@ mod simd;
 pub use camera::ViewCamera;
 pub use error::{RasterError, Result};
 pub use project::{
-    covariance_3d, ewa_jacobian, footprint, screen_tiles, tangent_range, EwaJacobian, Footprint,
-    Projected,
+    check_gaussians, covariance_3d, ewa_jacobian, footprint, screen_tiles, tangent_range,
+    EwaJacobian, Footprint, Projected,
 };
 pub use raster::{
     BlendCounts, DepthMode, ListScratch, Phases, Rasterizer, RenderOptions, RenderStats, Simd,

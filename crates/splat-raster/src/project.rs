@@ -80,7 +80,10 @@ fn may_be_drawn(var_max: f32) -> bool {
     (var_max >= 0.0) | var_max.is_nan()
 }
 
-pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
+/// Checks what [`prepare`] (and so `Rasterizer::new`) requires of the Gaussians, without
+/// preparing anything: consistent lengths, SH degree <= 3, finite means, log-scales,
+/// rotations and SH, no zero quaternion, no NaN opacity logit (±inf is allowed).
+pub fn check_gaussians(g: &Gaussians) -> Result<()> {
     let n = g.len();
     let check_len = |field: &'static str, got: usize, expected: usize| {
         if got == expected {
@@ -140,7 +143,11 @@ pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
             return non_finite(pos / per, "sh_rest", format!("{}", rest[pos]));
         }
     }
+    Ok(())
+}
 
+pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
+    check_gaussians(g)?;
     let order = spatial_order(&g.means);
     let by_slot = || order.iter().map(|&k| key_id(k) as usize);
     let cov3d = by_slot()
@@ -1517,27 +1524,17 @@ mod tests {
     /// and the bounding box's corners.
     #[test]
     fn spatial_order_is_the_morton_order_then_id() {
-        let mut state = 11u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut rng = Rng(11);
+        let mut next = || rng.unit() as f32;
         let mut means: Vec<[f32; 3]> = (0..3000)
             .map(|_| [next() * 8.0 - 4.0, next() * 0.01, 2.5])
             .collect();
         means.extend_from_within(100..400);
         means.push([-4.0, 0.0, 2.5]);
         means.push([4.0, 0.01, 2.5]);
-        let lo = [-4.0f64, 0.0];
-        let hi = means.iter().fold([f64::MIN; 2], |h, m| {
-            [h[0].max(f64::from(m[0])), h[1].max(f64::from(m[1]))]
-        });
-        let lo = [
-            means.iter().map(|m| f64::from(m[0])).fold(lo[0], f64::min),
-            lo[1],
-        ];
+        let axis = |a: usize| means.iter().map(move |m| f64::from(m[a]));
+        let lo = [0, 1].map(|a| axis(a).fold(f64::INFINITY, f64::min));
+        let hi = [0, 1].map(|a| axis(a).fold(f64::NEG_INFINITY, f64::max));
         let cell = |a: usize, x: f32| -> u32 {
             let t = (f64::from(x) - lo[a]) / (hi[a] - lo[a]);
             ((t * 1024.0) as u32).min(1023)

@@ -382,10 +382,9 @@ impl<'a> TileLists<'a> {
     }
 }
 
-/// Gaussians projected per job of [`Rasterizer::bin`] (a power of two: the key packs the
-/// position within the chunk into the low bits).
-const PROJECT_CHUNK: usize = 1 << CHUNK_BITS;
-const CHUNK_BITS: u32 = 14;
+/// Slots (Gaussians) projected per job of [`Rasterizer::bin`]: fixed, so that the jobs do
+/// not depend on the thread count.
+const PROJECT_CHUNK: usize = 1 << 14;
 
 /// Sort key of a splat: its camera depth (positive, finite: the bits of a positive f32
 /// order as the value) above its position in the view's splats, which is its Gaussian's
@@ -451,8 +450,9 @@ impl Simd {
 }
 
 impl<'g> Rasterizer<'g> {
-    /// Validates the Gaussians (lengths, finite parameters, non-zero quaternions; opacity
-    /// logits may be ±inf) and precomputes their 3D covariances and opacities.
+    /// Validates the Gaussians ([`check_gaussians`](crate::check_gaussians): lengths, finite
+    /// parameters, non-zero quaternions; opacity logits may be ±inf) and precomputes their
+    /// spatial order, 3D covariances and opacities.
     pub fn new(gaussians: &'g Gaussians) -> Result<Self> {
         Ok(Rasterizer {
             gaussians,

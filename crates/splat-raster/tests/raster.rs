@@ -1192,6 +1192,11 @@ fn invalid_inputs_are_typed_errors() {
         Rasterizer::new(&g),
         Err(RasterError::ZeroRotation { index: 2 })
     ));
+    // The checks alone (what gs-refine validates with) give the same errors.
+    assert!(matches!(
+        splat_raster::check_gaussians(&g),
+        Err(RasterError::ZeroRotation { index: 2 })
+    ));
 
     let mut g = random_scene(5, 10, &cams);
     g.opacity_logits = vec![0.0; 9].into();
@@ -1205,6 +1210,7 @@ fn invalid_inputs_are_typed_errors() {
     ));
 
     let g = random_scene(5, 10, &cams);
+    splat_raster::check_gaussians(&g).unwrap();
     let raster = Rasterizer::new(&g).unwrap();
     let k = |k| RenderOptions {
         top_k: Some(k),
