@@ -50,19 +50,21 @@
 //!   are independent and each is blended by one thread, with no floating-point reduction
 //!   across threads: outputs are bit-identical for any thread count. Rayon runs the tile rows in parallel; a view's
 //!   projection and sort are parallel too.
-//! * **SIMD.** The per-pixel step runs on groups of pixels of one tile row, branch-free with
+//! * **SIMD.** The per-pixel step runs on units of adjacent pixels of a tile, branch-free with
 //!   lane masks, and with [`math::exp`], a polynomial `expf` accurate to ~2 ulp (the class
 //!   of CUDA's `expf`) that vectorises. Two widths share one generic kernel: 4 lanes of
 //!   `wide::f32x4` (SSE2 on x86-64, NEON on aarch64; no `unsafe`) everywhere, and 16 lanes
-//!   (a whole tile row) with AVX-512 F + DQ, chosen at run time when the CPU has them (a
+//!   (a 4 x 4 pixel block) with AVX-512 F + DQ, chosen at run time when the CPU has them (a
 //!   small `unsafe` wrapper of the intrinsics, entered only after `is_x86_feature_detected`).
 //!   Every lane performs the same IEEE operations as the scalar formula, so both widths
 //!   give the same bytes as a scalar per-pixel loop ([`Simd`] and
 //!   [`Rasterizer::set_simd`] exist to compare their speed; the tests render with both).
-//! * **Blend loop.** A tile is cut into units of N adjacent pixels of one row (a whole
-//!   row with 16 lanes). Its depth-ordered splats are first appended to the lists of the
-//!   units they reach (the rows of the splat's rectangle; with 4 lanes only the groups of
-//!   each row's span), then each unit walks its own list with its whole state (T, the sums,
+//! * **Blend loop.** A tile is cut into units of N pixels: 4 adjacent pixels of one row
+//!   with 4 lanes, a 4 x 4 block with 16 (most splats of a dense scene cover a few pixels:
+//!   a block wastes fewer lanes on them than a 16-pixel row, e.g. a 3 x 3 splat is one
+//!   block entry instead of three mostly empty rows). Its depth-ordered splats are first
+//!   appended to the lists of the units they reach (those of the splat's rectangle; with
+//!   4 lanes only those of each row's span), then each unit walks its own list with its whole state (T, the sums,
 //!   stopped lanes, the K-th weight) in registers and stops once all its pixels have, so
 //!   nothing but T's few operations chains one splat to the next. The α of a batch of 8
 //!   entries is computed before they are composited, so their exp chains overlap. Powers

@@ -13,7 +13,7 @@ use crate::error::{RasterError, Result};
 use crate::project::{prepare, project, project_chunk, Prepared, Projected, Splat, SplatSink};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::avx512::F32x16;
-use crate::simd::{prefetch, Lanes, Level};
+use crate::simd::{prefetch, Lanes, Level, UNIT_W};
 use crate::{ALPHA_MAX, ALPHA_MIN, MAX_TOP_K, NO_GAUSSIAN, TILE, T_MIN};
 
 const TILE_PIXELS: usize = TILE * TILE;
@@ -118,8 +118,8 @@ pub struct Phases {
 /// What the blend did, summed over the view's tiles (with the `counters` feature).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct BlendCounts {
-    /// Pixel groups evaluated (N adjacent pixels of a tile row against one splat, N = 4 or
-    /// 16 lanes).
+    /// Pixel groups evaluated (a blend unit's N pixels against one splat: 4 x 1 with 4
+    /// lanes, 4 x 4 with 16).
     pub groups: u64,
     /// Lanes of those groups that were live (inside the splat's span and not stopped).
     pub live_lanes: u64,
@@ -434,7 +434,7 @@ pub struct Rasterizer<'g> {
 pub enum Simd {
     /// 4 lanes of `wide::f32x4` (SSE2 on x86-64, NEON on aarch64): runs everywhere.
     Portable,
-    /// 16 lanes (a whole tile row per group) with AVX-512 F + DQ, chosen at run time on
+    /// 16 lanes (a 4 x 4 pixel block per unit) with AVX-512 F + DQ, chosen at run time on
     /// x86-64 CPUs that have them.
     Avx512,
 }
@@ -1106,13 +1106,13 @@ fn flat_mut(v: &mut [Line]) -> &mut [f32] {
 }
 
 /// Scratch of one worker, reused across tiles and views: the per-pixel results of one tile
-/// and its top-K lists (structure of arrays in SIMD groups of N pixels: 4 with the
-/// portable lanes, a whole 16-pixel tile row with AVX-512), the per-unit splat lists, and
-/// the row-to-tile bucketing buffers.
+/// and its top-K lists (structure of arrays in SIMD units of N pixels: 4 x 1 with the
+/// portable lanes, 4 x 4 with AVX-512), the per-unit splat lists, and the row-to-tile
+/// bucketing buffers.
 ///
 /// The per-pixel arrays are row-major over the tile's pixels. The lists are rank-major per
-/// group (`lw[(group * K + r) * N + lane]` holds rank r of the group's pixel `lane`), so
-/// one insertion serves every lane of a group that has a candidate with SIMD compares and
+/// unit (`lw[(unit * K + r) * N + lane]` holds rank r of the unit's pixel `lane`), so
+/// one insertion serves every lane of a unit that has a candidate with SIMD compares and
 /// blends, without per-lane branches; the ranks past a group's longest list (`fill`) count
 /// as padding (weight 0, [`NO_GAUSSIAN`]) whatever an earlier tile left there, so the
 /// lists are never cleared, a list that is not full needs no per-lane count, and the K-th
@@ -1135,7 +1135,7 @@ struct TileScratch {
     lid: Vec<Line>,
     /// K of the lists.
     k: usize,
-    /// Per blend unit (N adjacent pixels of a tile row): the splats of the tile that reach
+    /// Per blend unit (see `blend_tile`): the splats of the tile that reach
     /// it, in depth order (see `blend_tile`).
     units: Vec<Vec<UnitEntry>>,
     /// Per blend unit: its lists' ranks from this one on are padding in every lane (they
@@ -1354,10 +1354,11 @@ fn pad_lists(out: &mut TopKOut<'_>, cols: usize, rows: usize) {
 }
 
 /// Copies a finished tile's lists (padding included) from their rank-major SIMD form in
-/// groups of `N` lanes into the output's per-pixel form, for the `cols` x `rows` pixels
-/// inside the image.
+/// units of `N` lanes ([`UNIT_W`] x N / [`UNIT_W`] pixels) into the output's per-pixel
+/// form, for the `cols` x `rows` pixels inside the image.
 fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, st: &TileScratch) {
     let k = out.k;
+    let unit_h = N / UNIT_W;
     let (lw, lid) = (flat(&st.lw), flat(&st.lid));
     for row in 0..rows {
         let slot = row * out.stride + out.base;
@@ -1367,20 +1368,26 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
         ) else {
             continue;
         };
-        for (g, (gw, gid)) in dw.chunks_mut(N * k).zip(did.chunks_mut(N * k)).enumerate() {
-            let group = row * (TILE / N) + g;
-            // Ranks from the group's fill on are padding (not cleared in the scratch).
-            let fill = st.fill.get(group).map_or(0, |&f| usize::from(f)).min(k);
-            let first = group * k * N;
+        // The row's pixels in runs of UNIT_W, one run per unit of this row.
+        let runs = dw.chunks_mut(UNIT_W * k).zip(did.chunks_mut(UNIT_W * k));
+        for (uc, (gw, gid)) in runs.enumerate() {
+            let unit = (row / unit_h) * (TILE / UNIT_W) + uc;
+            let lane0 = (row % unit_h) * UNIT_W;
+            // Ranks from the unit's fill on are padding (not cleared in the scratch).
+            let fill = st.fill.get(unit).map_or(0, |&f| usize::from(f)).min(k);
+            let first = unit * k * N;
             let (Some(sw), Some(sid)) = (
                 lw.get(first..first + fill * N),
                 lid.get(first..first + fill * N),
             ) else {
                 continue;
             };
-            // Rank-major (rank r of the group's N pixels adjacent) to pixel-major.
+            // Rank-major (rank r of the unit's N pixels adjacent) to pixel-major.
             for (r, (rw, rid)) in sw.chunks_exact(N).zip(sid.chunks_exact(N)).enumerate() {
-                for (lane, (w, id)) in rw.iter().zip(rid).enumerate() {
+                let lanes = rw[lane0..lane0 + UNIT_W]
+                    .iter()
+                    .zip(&rid[lane0..lane0 + UNIT_W]);
+                for (lane, (w, id)) in lanes.enumerate() {
                     if let (Some(dw), Some(did)) =
                         (gw.get_mut(lane * k + r), gid.get_mut(lane * k + r))
                     {
@@ -1452,8 +1459,8 @@ struct UnitEntry {
 
 /// Front-to-back blend of one tile's depth-sorted splats.
 ///
-/// The tile's pixels are cut into units of N adjacent pixels of one row (a whole tile row
-/// with 16 lanes). First every splat is appended to the list of each unit its footprint
+/// The tile's pixels are cut into units of N pixels: [`UNIT_W`] adjacent columns of
+/// N / [`UNIT_W`] adjacent rows (4 x 4 with 16 lanes, 4 x 1 with 4). First every splat is appended to the list of each unit its footprint
 /// reaches, in depth order; then each unit walks its own list with its whole state
 /// (transmittance, colour, depth and weight sums, stopped lanes, the K-th weight) in
 /// registers, and stops as soon as every pixel of it has stopped. Walking splats per unit
@@ -1467,14 +1474,15 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     [x0, x1, y0, y1]: [usize; 4],
     st: &mut TileScratch,
 ) {
-    let units_per_row = TILE / V::N;
+    let unit_h = V::N / UNIT_W;
+    let units_per_row = TILE / UNIT_W;
     st.units.resize_with(TILE_PIXELS / V::N, Vec::new);
     st.fill.resize(TILE_PIXELS / V::N, 0);
     let units = &mut st.units[..TILE_PIXELS / V::N];
     for unit in units.iter_mut() {
         unit.clear();
     }
-    distribute::<V>(splats, list, [x0, x1, y0, y1], units_per_row, units);
+    distribute::<V>(splats, list, [x0, x1, y0, y1], units);
     let k = st.k;
     let mut out = UnitOut {
         t: pixels_mut(&mut st.t),
@@ -1489,39 +1497,41 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         k,
         counts: &mut st.counts,
     };
-    for row in 0..y1 - y0 {
-        for gi in 0..units_per_row {
-            let c0 = gi * V::N;
-            if x0 + c0 >= x1 {
-                break;
-            }
-            // Lanes inside the image (the right-hand tiles may be narrower).
-            let valid = V::span(0, (x1 - x0 - 1 - c0).min(V::N - 1));
-            blend_unit::<V, TOPK, CUTOFF>(
-                splats,
-                &units[row * units_per_row + gi],
-                [x0 + c0, y0 + row],
-                valid,
-                row * TILE + c0,
-                &mut out,
-            );
+    for (u, unit) in units.iter().enumerate() {
+        let (r0, c0) = ((u / units_per_row) * unit_h, (u % units_per_row) * UNIT_W);
+        if y0 + r0 >= y1 || x0 + c0 >= x1 {
+            continue;
         }
+        // Lanes inside the image (the tiles at the right and bottom edges may be smaller).
+        let (cols, rows) = ((x1 - x0 - c0).min(UNIT_W), (y1 - y0 - r0).min(unit_h));
+        let row_bits = (1u32 << cols) - 1;
+        let valid = (0..rows).fold(0u32, |m, j| m | row_bits << (j * UNIT_W));
+        blend_unit::<V, TOPK, CUTOFF>(
+            splats,
+            unit,
+            [x0 + c0, y0 + r0],
+            V::from_bits(valid),
+            u,
+            &mut out,
+        );
     }
 }
 
-/// Appends each splat of the tile's list to the lists of the units (`units_per_row` per
-/// pixel row) its footprint reaches: the rows of its rectangle, and in each row the
-/// columns of its rectangle or, for groups narrower than a tile row where the spans can be
-/// trusted, of the row's span of the α >= 1/255 ellipse.
+/// Appends each splat of the tile's list to the lists of the units its footprint reaches,
+/// with the unit's lanes that lie in the footprint: for units of one row (4 lanes), the
+/// row's span of the α >= 1/255 ellipse (the whole rectangle row where the spans cannot be
+/// trusted), so that units the ellipse misses get no entry; for taller units, the
+/// splat's rectangle (a span per row cost more to solve than the corner units it saves,
+/// measured). The pixels of an entry's lanes outside the ellipse fail the alpha test.
 #[inline(always)]
 fn distribute<V: Lanes>(
     splats: &[Splat],
     list: &[u32],
     [x0, x1, y0, y1]: [usize; 4],
-    units_per_row: usize,
     units: &mut [Vec<UnitEntry>],
 ) {
-    let n = V::N;
+    let unit_h = V::N / UNIT_W;
+    const UNITS_PER_ROW: usize = TILE / UNIT_W;
     for (i, &e) in list.iter().enumerate() {
         // The list's splats are scattered over the view's (depth order, not screen order):
         // ask for one a few entries ahead while this one is distributed.
@@ -1540,19 +1550,19 @@ fn distribute<V: Lanes>(
         if cx0 > cx1 || cy0 > cy1 {
             continue;
         }
-        // With a group per tile row, narrowing a row to its span saves no group, and the
-        // pixels outside it fail the alpha test anyway (the span is a superset of the
-        // pixels with alpha >= 1/255): solve spans only for narrower groups.
-        if n == TILE {
-            // One group per row, the same lanes in each.
-            let lanes = V::bits(V::span(cx0 - x0, cx1 - x0));
-            for unit in units.get_mut(cy0 - y0..cy1 - y0 + 1).into_iter().flatten() {
-                unit.push(UnitEntry { splat: e, lanes });
-            }
+        if unit_h > 1 {
+            push_rectangle(units, unit_h, e, [cx0 - x0, cx1 - x0, cy0 - y0, cy1 - y0]);
             continue;
         }
+        // The lanes of the units of the current row of units, gathered row by row.
+        let mut lanes = [0u32; UNITS_PER_ROW];
+        let mut unit_row = (cy0 - y0) / unit_h;
         for py in cy0..cy1 + 1 {
-            // Whole rectangle rows where the spans cannot be trusted.
+            let r = py - y0;
+            if r / unit_h != unit_row {
+                push_unit_row(units, unit_row, e, &mut lanes);
+                unit_row = r / unit_h;
+            }
             let span = if sp.inv_a > 0.0 {
                 row_span(sp, py, cx0, cx1)
             } else {
@@ -1562,13 +1572,66 @@ fn distribute<V: Lanes>(
                 continue;
             };
             // lo..=hi are tile-local columns.
-            for gi in lo / n..hi / n + 1 {
-                let c0 = gi * n;
-                let lanes = V::bits(V::span(lo.max(c0) - c0, hi.min(c0 + n - 1) - c0));
-                if let Some(unit) = units.get_mut((py - y0) * units_per_row + gi) {
-                    unit.push(UnitEntry { splat: e, lanes });
+            let shift = (r % unit_h) * UNIT_W;
+            for uc in lo / UNIT_W..hi / UNIT_W + 1 {
+                let c0 = uc * UNIT_W;
+                let (first, last) = (lo.max(c0) - c0, hi.min(c0 + UNIT_W - 1) - c0);
+                if let Some(l) = lanes.get_mut(uc) {
+                    *l |= ((2u32 << last) - (1u32 << first)) << shift;
                 }
             }
+        }
+        push_unit_row(units, unit_row, e, &mut lanes);
+    }
+}
+
+/// Appends splat `e` to every unit of height `unit_h` that the tile-local rectangle
+/// `[c0, c1, r0, r1]` (inclusive) reaches, with the unit's lanes inside it.
+#[inline(always)]
+fn push_rectangle(
+    units: &mut [Vec<UnitEntry>],
+    unit_h: usize,
+    e: u32,
+    [c0, c1, r0, r1]: [usize; 4],
+) {
+    for ur in r0 / unit_h..r1 / unit_h + 1 {
+        let top = ur * unit_h;
+        let (j0, j1) = (r0.max(top) - top, r1.min(top + unit_h - 1) - top);
+        // Bit 0 of each of the unit's rows j0..=j1: times a row's column bits (< 2^UNIT_W,
+        // rows UNIT_W bits apart) it repeats them in each of those rows.
+        let rows: u32 = (j0..j1 + 1).map(|j| 1u32 << (j * UNIT_W)).sum();
+        for uc in c0 / UNIT_W..c1 / UNIT_W + 1 {
+            let left = uc * UNIT_W;
+            let (first, last) = (c0.max(left) - left, c1.min(left + UNIT_W - 1) - left);
+            let cols = (2u32 << last) - (1u32 << first);
+            if let Some(unit) = units.get_mut(ur * (TILE / UNIT_W) + uc) {
+                unit.push(UnitEntry {
+                    splat: e,
+                    lanes: cols * rows,
+                });
+            }
+        }
+    }
+}
+
+/// Appends splat `e` to the units of row of units `unit_row` whose gathered `lanes` are
+/// not empty (in column order), and clears `lanes`.
+#[inline(always)]
+fn push_unit_row(
+    units: &mut [Vec<UnitEntry>],
+    unit_row: usize,
+    e: u32,
+    lanes: &mut [u32; TILE / UNIT_W],
+) {
+    for (uc, l) in lanes.iter_mut().enumerate() {
+        if *l != 0 {
+            if let Some(unit) = units.get_mut(unit_row * (TILE / UNIT_W) + uc) {
+                unit.push(UnitEntry {
+                    splat: e,
+                    lanes: *l,
+                });
+            }
+            *l = 0;
         }
     }
 }
@@ -1644,7 +1707,7 @@ struct UnitState<V: Lanes> {
     done: V::Mask,
 }
 
-/// One unit (the N pixels from image column `px0` of image row `py`, at tile pixel `at`)
+/// One unit (number `unit` of the tile, whose top-left pixel is image pixel (`px0`, `py0`))
 /// over its splat list, front to back: INRIA's per-pixel step on all lanes at once (lanes
 /// outside an entry's footprint masked off). With `TOPK`, pixels whose weight beats their
 /// list's K-th enter their top-K list; with `CUTOFF` (lists only) a pixel also stops once
@@ -1653,9 +1716,9 @@ struct UnitState<V: Lanes> {
 fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
     entries: &[UnitEntry],
-    [px0, py]: [usize; 2],
+    [px0, py0]: [usize; 2],
     valid: V::Mask,
-    at: usize,
+    unit: usize,
     out: &mut UnitOut<'_>,
 ) {
     let n = V::N;
@@ -1671,7 +1734,7 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     };
     let all = V::bits(V::span(0, n - 1));
     let k = out.k;
-    let lists = at * k..(at + n) * k;
+    let lists = unit * n * k..(unit + 1) * n * k;
     let (Some(lw), Some(lid)) = (out.lw.get_mut(lists.clone()), out.lid.get_mut(lists)) else {
         return;
     };
@@ -1680,8 +1743,8 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     // earlier tile's entries, which `insert_group` and `write_lists` never read.
     let mut kth = zero;
     let mut fill = 0usize;
-    let px = V::splat(px0 as f32) + V::centres();
-    let pyc = py as f32 + 0.5;
+    let px = V::splat(px0 as f32) + V::unit_columns();
+    let py = V::splat(py0 as f32) + V::unit_rows();
     // Entries go in batches: first every α of the batch (long chains of exp, independent of
     // the unit's state, so they overlap), then the compositing in depth order (short
     // chains through T). One entry at a time, the out-of-order window held only about two
@@ -1696,7 +1759,7 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                 continue;
             }
             if let Some(sp) = splats.get(e.splat as usize) {
-                (*a, *m) = footprint_alpha::<V>(sp, lanes, px, pyc);
+                (*a, *m) = footprint_alpha::<V>(sp, lanes, px, py);
             }
         }
         for ((e, &a), &m) in batch.iter().zip(&alpha).zip(&reach) {
@@ -1749,18 +1812,31 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
             }
         }
     }
-    if let Some(f) = out.fill.get_mut(at / n) {
+    if let Some(f) = out.fill.get_mut(unit) {
         // At most K <= MAX_TOP_K: fits.
         *f = fill as u16;
     }
-    let range = at..at + n;
-    s.t.store(&mut out.t[range.clone()]);
+    let at = (unit / (TILE / UNIT_W)) * (n / UNIT_W) * TILE + (unit % (TILE / UNIT_W)) * UNIT_W;
+    store_unit(s.t, out.t, at);
     if !CUTOFF {
-        s.r.store(&mut out.r[range.clone()]);
-        s.g.store(&mut out.g[range.clone()]);
-        s.b.store(&mut out.b[range.clone()]);
-        s.depth.store(&mut out.depth[range.clone()]);
-        s.wsum.store(&mut out.wsum[range]);
+        store_unit(s.r, out.r, at);
+        store_unit(s.g, out.g, at);
+        store_unit(s.b, out.b, at);
+        store_unit(s.depth, out.depth, at);
+        store_unit(s.wsum, out.wsum, at);
+    }
+}
+
+/// Stores a unit's lanes into a row-major tile array, from tile pixel `at` (its top-left):
+/// [`UNIT_W`] lanes per row.
+#[inline(always)]
+fn store_unit<V: Lanes>(v: V, dst: &mut [f32; TILE_PIXELS], at: usize) {
+    let mut lanes = [0f32; 16];
+    v.store(&mut lanes);
+    for (j, row) in lanes[..V::N].chunks_exact(UNIT_W).enumerate() {
+        if let Some(d) = dst.get_mut(at + j * TILE..at + j * TILE + UNIT_W) {
+            d.copy_from_slice(row);
+        }
     }
 }
 
@@ -1824,17 +1900,16 @@ fn insert_group<V: Lanes>(
 /// Entries whose α [`blend_unit`] computes ahead of compositing them.
 const BATCH: usize = 8;
 
-/// The first half of INRIA's per-pixel step of splat `sp` for the N adjacent pixels with
-/// centres `px` in image row `pyc − 0.5`: power = −½(a dx² + c dy²) − b dx dy,
+/// The first half of INRIA's per-pixel step of splat `sp` for the N pixels of a unit, whose
+/// centres are (`px`, `py`) lane by lane: power = −½(a dx² + c dy²) − b dx dy,
 /// α = min(0.99, o·exp(power)); returns α and the lanes of `lanes` with power <= 0 and
 /// α >= 1/255. Every lane performs the same IEEE operations in the same order as the
 /// scalar reference.
 #[inline(always)]
-fn footprint_alpha<V: Lanes>(sp: &Splat, lanes: V::Mask, px: V, pyc: f32) -> (V, V::Mask) {
-    let dy = sp.y - pyc;
+fn footprint_alpha<V: Lanes>(sp: &Splat, lanes: V::Mask, px: V, py: V) -> (V, V::Mask) {
+    let dy = V::splat(sp.y) - py;
     // c·dy·dy rounds exactly as inside the scalar power expression.
-    let cdy = V::splat(sp.c * dy * dy);
-    let dy = V::splat(dy);
+    let cdy = V::splat(sp.c) * dy * dy;
     let dx = V::splat(sp.x) - px;
     let power = V::splat(-0.5) * (V::splat(sp.a) * dx * dx + cdy) - V::splat(sp.b) * dx * dy;
     // Below POWER_FLOOR every α fails the 1/255 test (opacity <= 1), so raising power to

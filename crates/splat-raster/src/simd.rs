@@ -1,6 +1,6 @@
 //! The lane types of the tile blend: the portable 4-lane `wide::f32x4` (SSE2 on any
 //! x86-64, NEON on aarch64) and, on x86-64 CPUs that have it (checked at run time), a
-//! 16-lane AVX-512 type whose group is a whole tile row.
+//! 16-lane AVX-512 type whose unit is a 4 x 4 pixel block.
 //!
 //! Both run the same generic blend code and perform the same IEEE single-precision
 //! operations in the same order on every lane (no fused multiply-add, NaN rules of min/max
@@ -53,8 +53,17 @@ pub(crate) trait Lanes:
     fn max_c(self, c: f32) -> Self;
     /// [`Lanes::min`] with every lane of `rhs` equal to `c`, which is not NaN.
     fn min_c(self, c: f32) -> Self;
-    /// Lane l holds l + 0.5 (pixel-centre offsets within a group).
-    fn centres() -> Self;
+    /// Lane l holds (l mod [`UNIT_W`]) + 0.5: the pixel-centre column offsets within a
+    /// blend unit.
+    #[inline(always)]
+    fn unit_columns() -> Self {
+        Self::load(&UNIT_CENTRES[0])
+    }
+    /// Lane l holds ⌊l / [`UNIT_W`]⌋ + 0.5: the pixel-centre row offsets within a unit.
+    #[inline(always)]
+    fn unit_rows() -> Self {
+        Self::load(&UNIT_CENTRES[1])
+    }
     /// The mask as bits, lane l in bit l.
     fn bits(m: Self::Mask) -> u32;
     /// The mask with lane l set where bit l of `bits` is (bits from N on are ignored).
@@ -66,6 +75,25 @@ pub(crate) trait Lanes:
         Self::from_bits((2u32 << last) - (1u32 << first))
     }
 }
+
+/// Columns of a blend unit: a unit of N lanes covers `UNIT_W` adjacent pixels of each of
+/// N / `UNIT_W` adjacent rows (lane l at column l mod `UNIT_W`, row ⌊l / `UNIT_W`⌋): 4 x 1
+/// pixels with 4 lanes, 4 x 4 with 16. A square unit wastes fewer lanes on the small
+/// footprints that dominate dense scenes than a 16 x 1 tile row does (a 3-pixel splat
+/// covers 3 rows of one 4 x 4 unit, against 3 row units with 3 of 16 lanes each).
+pub(crate) const UNIT_W: usize = 4;
+
+/// Lane l's column (row 0) and row (row 1) centre offsets within a unit, for up to 16 lanes.
+const UNIT_CENTRES: [[f32; 16]; 2] = {
+    let mut c = [[0.0f32; 16]; 2];
+    let mut l = 0;
+    while l < 16 {
+        c[0][l] = (l % UNIT_W) as f32 + 0.5;
+        c[1][l] = (l / UNIT_W) as f32 + 0.5;
+        l += 1;
+    }
+    c
+};
 
 /// The 4-lane masks, indexed by their bits (lane l in bit l).
 const MASK4: [f32x4; 16] = {
@@ -149,10 +177,6 @@ impl Lanes for f32x4 {
     #[inline(always)]
     fn min_c(self, c: f32) -> Self {
         f32x4::min(self, f32x4::splat(c))
-    }
-    #[inline(always)]
-    fn centres() -> Self {
-        f32x4::new([0.5, 1.5, 2.5, 3.5])
     }
     #[inline(always)]
     fn bits(m: Self) -> u32 {
@@ -383,19 +407,6 @@ pub(crate) mod avx512 {
             y * scale
         }
         #[inline(always)]
-        fn centres() -> Self {
-            const C: [f32; 16] = {
-                let mut c = [0.0f32; 16];
-                let mut l = 0;
-                while l < 16 {
-                    c[l] = l as f32 + 0.5;
-                    l += 1;
-                }
-                c
-            };
-            Self::load(&C)
-        }
-        #[inline(always)]
         fn bits(m: M16) -> u32 {
             u32::from(m.0)
         }
@@ -509,10 +520,11 @@ mod tests {
         for bits in [0u32, 1, 0x8000, 0xFFFF, 0x5A5A, 0x1234] {
             assert_eq!(F32x16::bits(F32x16::from_bits(bits)), bits);
         }
-        let mut c = [0.0f32; 16];
-        F32x16::centres().store(&mut c);
-        assert_eq!(c[0], 0.5);
-        assert_eq!(c[15], 15.5);
+        let (mut c, mut r) = ([0.0f32; 16], [0.0f32; 16]);
+        F32x16::unit_columns().store(&mut c);
+        F32x16::unit_rows().store(&mut r);
+        assert_eq!((c[0], c[3], c[4], c[15]), (0.5, 3.5, 0.5, 3.5));
+        assert_eq!((r[0], r[3], r[4], r[15]), (0.5, 0.5, 1.5, 3.5));
     }
 
     #[test]
@@ -527,5 +539,11 @@ mod tests {
         for bits in 0..16 {
             assert_eq!(f32x4::bits(f32x4::from_bits(bits)), bits);
         }
+        // Four lanes make a 4 x 1 unit: one row.
+        let (mut c, mut r) = ([0.0f32; 4], [0.0f32; 4]);
+        f32x4::unit_columns().store(&mut c);
+        f32x4::unit_rows().store(&mut r);
+        assert_eq!(c, [0.5, 1.5, 2.5, 3.5]);
+        assert_eq!(r, [0.5; 4]);
     }
 }
