@@ -63,8 +63,9 @@
 //!   with 4 lanes, a 4 x 4 block with 16 (most splats of a dense scene cover a few pixels:
 //!   a block wastes fewer lanes on them than a 16-pixel row, e.g. a 3 x 3 splat is one
 //!   block entry instead of three mostly empty rows). Its depth-ordered splats are first
-//!   appended to the lists of the units they reach (those of the splat's rectangle; with
-//!   4 lanes only those of each row's span), then each unit walks its own list with its whole state (T, the sums,
+//!   appended to the lists of the units they reach (those of the splat's rectangle,
+//!   without data-dependent branches when it fits in 2 x 2 units; with 4 lanes only those
+//!   of each row's span), then each unit walks its own list with its whole state (T, the sums,
 //!   stopped lanes, the K-th weight) in registers and stops once all its pixels have, so
 //!   nothing but T's few operations chains one splat to the next. The α of a batch of 8
 //!   entries is computed before they are composited, so their exp chains overlap. Powers

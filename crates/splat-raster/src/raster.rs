@@ -1137,12 +1137,12 @@ struct TileScratch {
     k: usize,
     /// Per blend unit (see `blend_tile`): the splats of the tile that reach
     /// it, in depth order (see `blend_tile`).
-    units: Vec<Vec<UnitEntry>>,
+    units: UnitLists,
     /// Per blend unit: its lists' ranks from this one on are padding in every lane (they
     /// were never written in this tile: the lists are not cleared between tiles).
     fill: Vec<u16>,
     tile_start: Vec<usize>,
-    tile_entries: Vec<u32>,
+    tile_entries: Vec<RowEntry>,
     /// One tile's lists in pixel-major form, for [`Rasterizer::render_tiles`].
     tile_ids: Vec<u32>,
     tile_weights: Vec<f32>,
@@ -1250,7 +1250,7 @@ fn bucket_by_tile(
     entries: &[RowEntry],
     tiles_x: usize,
     start: &mut Vec<usize>,
-    list: &mut Vec<u32>,
+    list: &mut Vec<RowEntry>,
 ) -> usize {
     start.clear();
     start.resize(tiles_x + 1, 0);
@@ -1264,11 +1264,11 @@ fn bucket_by_tile(
     }
     let total = start[tiles_x];
     list.clear();
-    list.resize(total, 0);
+    list.resize(total, (0, [0; 4]));
     let mut fill = start.clone();
     for &(e, r) in entries {
         for tx in usize::from(r[0]) / TILE..usize::from(r[1]) / TILE + 1 {
-            list[fill[tx]] = e;
+            list[fill[tx]] = (e, r);
             fill[tx] += 1;
         }
     }
@@ -1409,7 +1409,7 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
 fn blend_tile_at<const TOPK: bool, const CUTOFF: bool>(
     ctx: &Ctx<'_>,
     splats: &[Splat],
-    list: &[u32],
+    list: &[RowEntry],
     rect: [usize; 4],
     st: &mut TileScratch,
 ) {
@@ -1428,7 +1428,7 @@ fn blend_tile_at<const TOPK: bool, const CUTOFF: bool>(
 #[inline(never)]
 fn blend_tile_portable<const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
-    list: &[u32],
+    list: &[RowEntry],
     rect: [usize; 4],
     st: &mut TileScratch,
 ) {
@@ -1441,7 +1441,7 @@ fn blend_tile_portable<const TOPK: bool, const CUTOFF: bool>(
 #[target_feature(enable = "avx512f,avx512dq")]
 fn blend_tile_avx512<const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
-    list: &[u32],
+    list: &[RowEntry],
     rect: [usize; 4],
     st: &mut TileScratch,
 ) {
@@ -1457,6 +1457,61 @@ struct UnitEntry {
     lanes: u32,
 }
 
+/// The per-unit splat lists of one tile in one buffer: unit u's entries are
+/// `entries[u * stride..][..len[u]]`, where `stride` exceeds the tile's list length (a
+/// splat enters a unit at most once), so the slot after a unit's last entry is always its
+/// own and a write there that is not counted disturbs nothing.
+#[derive(Debug, Default)]
+struct UnitLists {
+    entries: Vec<UnitEntry>,
+    len: Vec<usize>,
+    stride: usize,
+}
+
+impl UnitLists {
+    /// Empties `units` lists for a tile of `list_len` splats.
+    fn reset(&mut self, units: usize, list_len: usize) {
+        self.stride = list_len + 1;
+        let need = units * self.stride;
+        if self.entries.len() < need {
+            self.entries.resize(need, UnitEntry { splat: 0, lanes: 0 });
+        }
+        self.len.clear();
+        self.len.resize(units, 0);
+    }
+
+    #[inline(always)]
+    fn push(&mut self, unit: usize, entry: UnitEntry) {
+        if let Some(len) = self.len.get_mut(unit) {
+            if let Some(slot) = self.entries.get_mut(unit * self.stride + *len) {
+                *slot = entry;
+                *len += 1;
+            }
+        }
+    }
+
+    /// Appends (e, lanes) to `unit` if `lanes` is not empty, without a branch on it: the
+    /// entry is always written, into the slot after the unit's last entry, and counted
+    /// only if it has lanes. A `unit` beyond the tile's units is ignored.
+    #[inline(always)]
+    fn push_if_any(&mut self, unit: usize, e: u32, lanes: u32) {
+        let Some(len) = self.len.get_mut(unit) else {
+            return;
+        };
+        if let Some(slot) = self.entries.get_mut(unit * self.stride + *len) {
+            *slot = UnitEntry { splat: e, lanes };
+            *len += usize::from(lanes != 0);
+        }
+    }
+
+    fn get(&self, unit: usize) -> &[UnitEntry] {
+        let len = self.len.get(unit).copied().unwrap_or(0);
+        self.entries
+            .get(unit * self.stride..unit * self.stride + len)
+            .unwrap_or(&[])
+    }
+}
+
 /// Front-to-back blend of one tile's depth-sorted splats.
 ///
 /// The tile's pixels are cut into units of N pixels: [`UNIT_W`] adjacent columns of
@@ -1470,19 +1525,17 @@ struct UnitEntry {
 #[inline(always)]
 fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
-    list: &[u32],
+    list: &[RowEntry],
     [x0, x1, y0, y1]: [usize; 4],
     st: &mut TileScratch,
 ) {
     let unit_h = V::N / UNIT_W;
     let units_per_row = TILE / UNIT_W;
-    st.units.resize_with(TILE_PIXELS / V::N, Vec::new);
     st.fill.resize(TILE_PIXELS / V::N, 0);
-    let units = &mut st.units[..TILE_PIXELS / V::N];
-    for unit in units.iter_mut() {
-        unit.clear();
-    }
+    let units = &mut st.units;
+    units.reset(TILE_PIXELS / V::N, list.len());
     distribute::<V>(splats, list, [x0, x1, y0, y1], units);
+    let units = &st.units;
     let k = st.k;
     let mut out = UnitOut {
         t: pixels_mut(&mut st.t),
@@ -1497,7 +1550,8 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         k,
         counts: &mut st.counts,
     };
-    for (u, unit) in units.iter().enumerate() {
+    for u in 0..TILE_PIXELS / V::N {
+        let unit = units.get(u);
         let (r0, c0) = ((u / units_per_row) * unit_h, (u % units_per_row) * UNIT_W);
         if y0 + r0 >= y1 || x0 + c0 >= x1 {
             continue;
@@ -1526,34 +1580,37 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
 #[inline(always)]
 fn distribute<V: Lanes>(
     splats: &[Splat],
-    list: &[u32],
+    list: &[RowEntry],
     [x0, x1, y0, y1]: [usize; 4],
-    units: &mut [Vec<UnitEntry>],
+    units: &mut UnitLists,
 ) {
     let unit_h = V::N / UNIT_W;
     const UNITS_PER_ROW: usize = TILE / UNIT_W;
-    for (i, &e) in list.iter().enumerate() {
+    for (i, &(e, rect)) in list.iter().enumerate() {
         // The list's splats are scattered over the view's (depth order, not screen order):
-        // ask for one a few entries ahead while this one is distributed.
+        // ask for one a few entries ahead, for the units' walks (and the spans below).
         if let Some(ahead) = list
             .get(i + PREFETCH_AHEAD)
-            .and_then(|&a| splats.get(a as usize))
+            .and_then(|&(a, _)| splats.get(a as usize))
         {
             prefetch(ahead);
         }
-        let Some(sp) = splats.get(e as usize) else {
-            continue;
-        };
-        let [rx0, rx1, ry0, ry1] = sp.rect.map(usize::from);
+        let [rx0, rx1, ry0, ry1] = rect.map(usize::from);
         let (cx0, cx1) = (rx0.max(x0), rx1.min(x1 - 1));
         let (cy0, cy1) = (ry0.max(y0), ry1.min(y1 - 1));
         if cx0 > cx1 || cy0 > cy1 {
             continue;
         }
         if unit_h > 1 {
-            push_rectangle(units, unit_h, e, [cx0 - x0, cx1 - x0, cy0 - y0, cy1 - y0]);
+            let rect = [cx0 - x0, cx1 - x0, cy0 - y0, cy1 - y0];
+            if !push_small_rectangle(units, e, rect) {
+                push_rectangle(units, unit_h, e, rect);
+            }
             continue;
         }
+        let Some(sp) = splats.get(e as usize) else {
+            continue;
+        };
         // The lanes of the units of the current row of units, gathered row by row.
         let mut lanes = [0u32; UNITS_PER_ROW];
         let mut unit_row = (cy0 - y0) / unit_h;
@@ -1585,15 +1642,36 @@ fn distribute<V: Lanes>(
     }
 }
 
+/// [`push_rectangle`] for 4 x 4 units without data-dependent branches, for a rectangle
+/// that fits in the 2 x 2 units from the one of its top-left pixel (most splats of a dense
+/// scene: the loops over unit rows and columns mispredicted their short, varying trip
+/// counts); returns false, having pushed nothing, for a larger one.
+#[inline(always)]
+fn push_small_rectangle(units: &mut UnitLists, e: u32, [c0, c1, r0, r1]: [usize; 4]) -> bool {
+    let (ur0, uc0) = (r0 / UNIT_W, c0 / UNIT_W);
+    if r1 >= (ur0 + 2) * UNIT_W || c1 >= (uc0 + 2) * UNIT_W {
+        return false;
+    }
+    // The rectangle's columns and rows as bits over the whole tile (c1, r1 < 16).
+    let cols = (2u32 << c1) - (1u32 << c0);
+    let rows = (2u32 << r1) - (1u32 << r0);
+    for (dr, dc) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+        let (ur, uc) = (ur0 + dr, uc0 + dc);
+        // 4 column bits of unit column uc; 4 row bits of unit row ur spread to bits 0, 4,
+        // 8, 12, so that their product repeats the columns in each of those rows. Beyond
+        // the tile (ur or uc = 4) both are 0.
+        let c = (cols >> (UNIT_W * uc)) & 0xF;
+        let r = (rows >> (UNIT_W * ur)) & 0xF;
+        let spread = (r & 1) | ((r & 2) << 3) | ((r & 4) << 6) | ((r & 8) << 9);
+        units.push_if_any(ur * (TILE / UNIT_W) + uc, e, c * spread);
+    }
+    true
+}
+
 /// Appends splat `e` to every unit of height `unit_h` that the tile-local rectangle
 /// `[c0, c1, r0, r1]` (inclusive) reaches, with the unit's lanes inside it.
 #[inline(always)]
-fn push_rectangle(
-    units: &mut [Vec<UnitEntry>],
-    unit_h: usize,
-    e: u32,
-    [c0, c1, r0, r1]: [usize; 4],
-) {
+fn push_rectangle(units: &mut UnitLists, unit_h: usize, e: u32, [c0, c1, r0, r1]: [usize; 4]) {
     for ur in r0 / unit_h..r1 / unit_h + 1 {
         let top = ur * unit_h;
         let (j0, j1) = (r0.max(top) - top, r1.min(top + unit_h - 1) - top);
@@ -1604,12 +1682,13 @@ fn push_rectangle(
             let left = uc * UNIT_W;
             let (first, last) = (c0.max(left) - left, c1.min(left + UNIT_W - 1) - left);
             let cols = (2u32 << last) - (1u32 << first);
-            if let Some(unit) = units.get_mut(ur * (TILE / UNIT_W) + uc) {
-                unit.push(UnitEntry {
+            units.push(
+                ur * (TILE / UNIT_W) + uc,
+                UnitEntry {
                     splat: e,
                     lanes: cols * rows,
-                });
-            }
+                },
+            );
         }
     }
 }
@@ -1617,20 +1696,16 @@ fn push_rectangle(
 /// Appends splat `e` to the units of row of units `unit_row` whose gathered `lanes` are
 /// not empty (in column order), and clears `lanes`.
 #[inline(always)]
-fn push_unit_row(
-    units: &mut [Vec<UnitEntry>],
-    unit_row: usize,
-    e: u32,
-    lanes: &mut [u32; TILE / UNIT_W],
-) {
+fn push_unit_row(units: &mut UnitLists, unit_row: usize, e: u32, lanes: &mut [u32; TILE / UNIT_W]) {
     for (uc, l) in lanes.iter_mut().enumerate() {
         if *l != 0 {
-            if let Some(unit) = units.get_mut(unit_row * (TILE / UNIT_W) + uc) {
-                unit.push(UnitEntry {
+            units.push(
+                unit_row * (TILE / UNIT_W) + uc,
+                UnitEntry {
                     splat: e,
                     lanes: *l,
-                });
-            }
+                },
+            );
             *l = 0;
         }
     }
@@ -2003,8 +2078,8 @@ fn write_tile(ctx: &Ctx<'_>, row: &mut RowOut<'_>, [x0, x1, y0, y1]: [usize; 4],
 #[cfg(test)]
 mod tests {
     use super::{
-        bucket_by_row, depth_key, key_position, sort_by_depth, ChunkRecords, DepthRecord, RowEntry,
-        TILE,
+        bucket_by_row, depth_key, key_position, push_rectangle, push_small_rectangle,
+        sort_by_depth, ChunkRecords, DepthRecord, RowEntry, UnitLists, TILE, TILE_PIXELS, UNIT_W,
     };
 
     /// A small LCG: deterministic test values below `m`.
@@ -2170,5 +2245,77 @@ mod tests {
         let (mut start, mut entries) = (Vec::new(), Vec::new());
         bucket_by_row(&[], tiles_y, 4, &mut start, &mut entries);
         assert_eq!((start, entries.len()), (vec![0; tiles_y + 1], 0));
+    }
+
+    /// Every unit's (splat, lanes) entries, in order.
+    fn unit_entries(units: &UnitLists, count: usize) -> Vec<Vec<(u32, u32)>> {
+        (0..count)
+            .map(|u| units.get(u).iter().map(|e| (e.splat, e.lanes)).collect())
+            .collect()
+    }
+
+    #[test]
+    fn small_rectangles_reach_the_units_and_lanes_of_the_loop_version() {
+        // Every rectangle of a tile (4 x 4 units), pushed after an earlier splat so that
+        // the uncounted writes of empty units must not disturb existing entries.
+        let count = TILE_PIXELS / 16;
+        let (mut fast, mut slow) = (UnitLists::default(), UnitLists::default());
+        let mut small = 0;
+        for r0 in 0..TILE {
+            for r1 in r0..TILE {
+                for c0 in 0..TILE {
+                    for c1 in c0..TILE {
+                        fast.reset(count, 2);
+                        slow.reset(count, 2);
+                        let first = [3, 9, 2, 5];
+                        push_rectangle(&mut fast, UNIT_W, 7, first);
+                        push_rectangle(&mut slow, UNIT_W, 7, first);
+                        let rect = [c0, c1, r0, r1];
+                        if push_small_rectangle(&mut fast, 8, rect) {
+                            small += 1;
+                        } else {
+                            // Larger than 2 x 2 units from its top-left one: refused, and
+                            // nothing pushed.
+                            assert!(r1 / UNIT_W > r0 / UNIT_W + 1 || c1 / UNIT_W > c0 / UNIT_W + 1);
+                            push_rectangle(&mut fast, UNIT_W, 8, rect);
+                        }
+                        push_rectangle(&mut slow, UNIT_W, 8, rect);
+                        assert_eq!(
+                            unit_entries(&fast, count),
+                            unit_entries(&slow, count),
+                            "{rect:?}"
+                        );
+                    }
+                }
+            }
+        }
+        // 2 x 2 units hold every rectangle whose rows and columns each span <= 2 units.
+        let spans_within_two = (0..TILE)
+            .flat_map(|a| (a..TILE).map(move |b| (a, b)))
+            .filter(|(a, b)| b / UNIT_W <= a / UNIT_W + 1)
+            .count();
+        assert_eq!(small, spans_within_two * spans_within_two);
+    }
+
+    #[test]
+    fn a_rectangle_reaches_exactly_its_pixels() {
+        // The loop version against a per-pixel reference: lane l of unit u is tile pixel
+        // (column 4 (u mod 4) + l mod 4, row 4 (u div 4) + l div 4).
+        let count = TILE_PIXELS / 16;
+        let mut units = UnitLists::default();
+        for rect in [[0, 15, 0, 15], [3, 4, 7, 12], [5, 5, 0, 0], [1, 14, 2, 3]] {
+            units.reset(count, 1);
+            push_rectangle(&mut units, UNIT_W, 1, rect);
+            let [c0, c1, r0, r1] = rect;
+            for u in 0..count {
+                let lanes = units.get(u).first().map_or(0, |e| e.lanes);
+                for l in 0..16 {
+                    let col = UNIT_W * (u % 4) + l % UNIT_W;
+                    let row = UNIT_W * (u / 4) + l / UNIT_W;
+                    let inside = (c0..=c1).contains(&col) && (r0..=r1).contains(&row);
+                    assert_eq!(lanes >> l & 1 == 1, inside, "{rect:?} unit {u} lane {l}");
+                }
+            }
+        }
     }
 }
