@@ -1135,8 +1135,8 @@ struct TileScratch {
     lid: Vec<Line>,
     /// K of the lists.
     k: usize,
-    /// Per blend unit (see `blend_tile`): the splats of the tile that reach
-    /// it, in depth order (see `blend_tile`).
+    /// Per blend unit: the splats of the tile that reach it, in depth order (see
+    /// `blend_tile`).
     units: UnitLists,
     /// Per blend unit: its lists' ranks from this one on are padding in every lane (they
     /// were never written in this tile: the lists are not cleared between tiles).
@@ -1515,8 +1515,8 @@ impl UnitLists {
 /// Front-to-back blend of one tile's depth-sorted splats.
 ///
 /// The tile's pixels are cut into units of N pixels: [`UNIT_W`] adjacent columns of
-/// N / [`UNIT_W`] adjacent rows (4 x 4 with 16 lanes, 4 x 1 with 4). First every splat is appended to the list of each unit its footprint
-/// reaches, in depth order; then each unit walks its own list with its whole state
+/// N / [`UNIT_W`] adjacent rows (4 x 4 with 16 lanes, 4 x 1 with 4). First every splat is
+/// appended to the list of each unit its footprint reaches, in depth order; then each unit walks its own list with its whole state
 /// (transmittance, colour, depth and weight sums, stopped lanes, the K-th weight) in
 /// registers, and stops as soon as every pixel of it has stopped. Walking splats per unit
 /// rather than units per splat keeps that state out of memory between blends, so the only
@@ -1608,18 +1608,11 @@ fn distribute<V: Lanes>(
             }
             continue;
         }
+        // Units of one row: the row's span of the ellipse.
         let Some(sp) = splats.get(e as usize) else {
             continue;
         };
-        // The lanes of the units of the current row of units, gathered row by row.
-        let mut lanes = [0u32; UNITS_PER_ROW];
-        let mut unit_row = (cy0 - y0) / unit_h;
         for py in cy0..cy1 + 1 {
-            let r = py - y0;
-            if r / unit_h != unit_row {
-                push_unit_row(units, unit_row, e, &mut lanes);
-                unit_row = r / unit_h;
-            }
             let span = if sp.inv_a > 0.0 {
                 row_span(sp, py, cx0, cx1)
             } else {
@@ -1629,16 +1622,16 @@ fn distribute<V: Lanes>(
                 continue;
             };
             // lo..=hi are tile-local columns.
-            let shift = (r % unit_h) * UNIT_W;
             for uc in lo / UNIT_W..hi / UNIT_W + 1 {
                 let c0 = uc * UNIT_W;
                 let (first, last) = (lo.max(c0) - c0, hi.min(c0 + UNIT_W - 1) - c0);
-                if let Some(l) = lanes.get_mut(uc) {
-                    *l |= ((2u32 << last) - (1u32 << first)) << shift;
-                }
+                let lanes = (2u32 << last) - (1u32 << first);
+                units.push(
+                    (py - y0) * UNITS_PER_ROW + uc,
+                    UnitEntry { splat: e, lanes },
+                );
             }
         }
-        push_unit_row(units, unit_row, e, &mut lanes);
     }
 }
 
@@ -1689,24 +1682,6 @@ fn push_rectangle(units: &mut UnitLists, unit_h: usize, e: u32, [c0, c1, r0, r1]
                     lanes: cols * rows,
                 },
             );
-        }
-    }
-}
-
-/// Appends splat `e` to the units of row of units `unit_row` whose gathered `lanes` are
-/// not empty (in column order), and clears `lanes`.
-#[inline(always)]
-fn push_unit_row(units: &mut UnitLists, unit_row: usize, e: u32, lanes: &mut [u32; TILE / UNIT_W]) {
-    for (uc, l) in lanes.iter_mut().enumerate() {
-        if *l != 0 {
-            units.push(
-                unit_row * (TILE / UNIT_W) + uc,
-                UnitEntry {
-                    splat: e,
-                    lanes: *l,
-                },
-            );
-            *l = 0;
         }
     }
 }
