@@ -13,10 +13,12 @@ use crate::error::{RasterError, Result};
 use crate::project::{prepare, project, project_chunk, Prepared, Projected, Splat, SplatSink};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::avx512::F32x16;
-use crate::simd::{prefetch, Lanes, Level, UNIT_W};
+use crate::simd::{bit_range, prefetch, Lanes, Level, UNIT_W};
 use crate::{ALPHA_MAX, ALPHA_MIN, MAX_TOP_K, NO_GAUSSIAN, TILE, T_MIN};
 
 const TILE_PIXELS: usize = TILE * TILE;
+/// Blend units per tile row of units ([`UNIT_W`] pixels wide each).
+const UNITS_PER_ROW: usize = TILE / UNIT_W;
 
 /// What to accumulate into the depth output.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -1371,7 +1373,7 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
         // The row's pixels in runs of UNIT_W, one run per unit of this row.
         let runs = dw.chunks_mut(UNIT_W * k).zip(did.chunks_mut(UNIT_W * k));
         for (uc, (gw, gid)) in runs.enumerate() {
-            let unit = (row / unit_h) * (TILE / UNIT_W) + uc;
+            let unit = (row / unit_h) * UNITS_PER_ROW + uc;
             let lane0 = (row % unit_h) * UNIT_W;
             // Ranks from the unit's fill on are padding (not cleared in the scratch).
             let fill = st.fill.get(unit).map_or(0, |&f| usize::from(f)).min(k);
@@ -1530,7 +1532,6 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     st: &mut TileScratch,
 ) {
     let unit_h = V::N / UNIT_W;
-    let units_per_row = TILE / UNIT_W;
     st.fill.resize(TILE_PIXELS / V::N, 0);
     let units = &mut st.units;
     units.reset(TILE_PIXELS / V::N, list.len());
@@ -1552,20 +1553,19 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     };
     for u in 0..TILE_PIXELS / V::N {
         let unit = units.get(u);
-        let (r0, c0) = ((u / units_per_row) * unit_h, (u % units_per_row) * UNIT_W);
+        let (r0, c0) = ((u / UNITS_PER_ROW) * unit_h, (u % UNITS_PER_ROW) * UNIT_W);
         if y0 + r0 >= y1 || x0 + c0 >= x1 {
             continue;
         }
         // Lanes inside the image (the tiles at the right and bottom edges may be smaller).
         let (cols, rows) = ((x1 - x0 - c0).min(UNIT_W), (y1 - y0 - r0).min(unit_h));
-        let row_bits = (1u32 << cols) - 1;
-        let valid = (0..rows).fold(0u32, |m, j| m | row_bits << (j * UNIT_W));
+        let valid = bit_range(0, cols - 1) * row_starts(0, rows - 1);
         blend_unit::<V, TOPK, CUTOFF>(
             splats,
             unit,
             [x0 + c0, y0 + r0],
             V::from_bits(valid),
-            u,
+            [u, r0 * TILE + c0],
             &mut out,
         );
     }
@@ -1585,7 +1585,6 @@ fn distribute<V: Lanes>(
     units: &mut UnitLists,
 ) {
     let unit_h = V::N / UNIT_W;
-    const UNITS_PER_ROW: usize = TILE / UNIT_W;
     for (i, &(e, rect)) in list.iter().enumerate() {
         // The list's splats are scattered over the view's (depth order, not screen order):
         // ask for one a few entries ahead, for the units' walks (and the spans below).
@@ -1625,7 +1624,7 @@ fn distribute<V: Lanes>(
             for uc in lo / UNIT_W..hi / UNIT_W + 1 {
                 let c0 = uc * UNIT_W;
                 let (first, last) = (lo.max(c0) - c0, hi.min(c0 + UNIT_W - 1) - c0);
-                let lanes = (2u32 << last) - (1u32 << first);
+                let lanes = bit_range(first, last);
                 units.push(
                     (py - y0) * UNITS_PER_ROW + uc,
                     UnitEntry { splat: e, lanes },
@@ -1646,8 +1645,8 @@ fn push_small_rectangle(units: &mut UnitLists, e: u32, [c0, c1, r0, r1]: [usize;
         return false;
     }
     // The rectangle's columns and rows as bits over the whole tile (c1, r1 < 16).
-    let cols = (2u32 << c1) - (1u32 << c0);
-    let rows = (2u32 << r1) - (1u32 << r0);
+    let cols = bit_range(c0, c1);
+    let rows = bit_range(r0, r1);
     for (dr, dc) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
         let (ur, uc) = (ur0 + dr, uc0 + dc);
         // 4 column bits of unit column uc; 4 row bits of unit row ur spread to bits 0, 4,
@@ -1656,7 +1655,7 @@ fn push_small_rectangle(units: &mut UnitLists, e: u32, [c0, c1, r0, r1]: [usize;
         let c = (cols >> (UNIT_W * uc)) & 0xF;
         let r = (rows >> (UNIT_W * ur)) & 0xF;
         let spread = (r & 1) | ((r & 2) << 3) | ((r & 4) << 6) | ((r & 8) << 9);
-        units.push_if_any(ur * (TILE / UNIT_W) + uc, e, c * spread);
+        units.push_if_any(ur * UNITS_PER_ROW + uc, e, c * spread);
     }
     true
 }
@@ -1668,15 +1667,13 @@ fn push_rectangle(units: &mut UnitLists, unit_h: usize, e: u32, [c0, c1, r0, r1]
     for ur in r0 / unit_h..r1 / unit_h + 1 {
         let top = ur * unit_h;
         let (j0, j1) = (r0.max(top) - top, r1.min(top + unit_h - 1) - top);
-        // Bit 0 of each of the unit's rows j0..=j1: times a row's column bits (< 2^UNIT_W,
-        // rows UNIT_W bits apart) it repeats them in each of those rows.
-        let rows: u32 = (j0..j1 + 1).map(|j| 1u32 << (j * UNIT_W)).sum();
+        let rows = row_starts(j0, j1);
         for uc in c0 / UNIT_W..c1 / UNIT_W + 1 {
             let left = uc * UNIT_W;
             let (first, last) = (c0.max(left) - left, c1.min(left + UNIT_W - 1) - left);
-            let cols = (2u32 << last) - (1u32 << first);
+            let cols = bit_range(first, last);
             units.push(
-                ur * (TILE / UNIT_W) + uc,
+                ur * UNITS_PER_ROW + uc,
                 UnitEntry {
                     splat: e,
                     lanes: cols * rows,
@@ -1684,6 +1681,13 @@ fn push_rectangle(units: &mut UnitLists, unit_h: usize, e: u32, [c0, c1, r0, r1]
             );
         }
     }
+}
+
+/// Bit 0 of each of a unit's rows `j0..=j1` (rows [`UNIT_W`] bits apart): times a row's
+/// column bits (< 2^UNIT_W) it repeats them in each of those rows.
+#[inline(always)]
+fn row_starts(j0: usize, j1: usize) -> u32 {
+    (j0..j1 + 1).map(|j| 1u32 << (j * UNIT_W)).sum()
 }
 
 /// The columns of image row `py` within `cx0..=cx1` where `sp` may reach α >= 1/255:
@@ -1757,8 +1761,8 @@ struct UnitState<V: Lanes> {
     done: V::Mask,
 }
 
-/// One unit (number `unit` of the tile, whose top-left pixel is image pixel (`px0`, `py0`))
-/// over its splat list, front to back: INRIA's per-pixel step on all lanes at once (lanes
+/// One unit (number `unit` of the tile, whose top-left pixel is image pixel (`px0`, `py0`)
+/// and tile pixel `at`) over its splat list, front to back: INRIA's per-pixel step on all lanes at once (lanes
 /// outside an entry's footprint masked off). With `TOPK`, pixels whose weight beats their
 /// list's K-th enter their top-K list; with `CUTOFF` (lists only) a pixel also stops once
 /// its list is final. Writes T, the sums and the lists into `out`.
@@ -1768,7 +1772,7 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     entries: &[UnitEntry],
     [px0, py0]: [usize; 2],
     valid: V::Mask,
-    unit: usize,
+    [unit, at]: [usize; 2],
     out: &mut UnitOut<'_>,
 ) {
     let n = V::N;
@@ -1866,7 +1870,6 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         // At most K <= MAX_TOP_K: fits.
         *f = fill as u16;
     }
-    let at = (unit / (TILE / UNIT_W)) * (n / UNIT_W) * TILE + (unit % (TILE / UNIT_W)) * UNIT_W;
     store_unit(s.t, out.t, at);
     if !CUTOFF {
         store_unit(s.r, out.r, at);

@@ -71,9 +71,14 @@ pub(crate) trait Lanes:
     /// The lanes `first..=last` (both < N <= 16, first <= last).
     #[inline(always)]
     fn span(first: usize, last: usize) -> Self::Mask {
-        // Bits first..=last (last < 16, so the shift fits in u32).
-        Self::from_bits((2u32 << last) - (1u32 << first))
+        Self::from_bits(bit_range(first, last))
     }
+}
+
+/// Bits `first..=last` set (`first <= last < 31`): a span of lanes, pixels or rows.
+#[inline(always)]
+pub(crate) const fn bit_range(first: usize, last: usize) -> u32 {
+    (2u32 << last) - (1u32 << first)
 }
 
 /// Columns of a blend unit: a unit of N lanes covers `UNIT_W` adjacent pixels of each of
