@@ -560,34 +560,21 @@ impl SplatSink for Vec<Splat> {
     }
 }
 
-/// Projects the Gaussians in [`Prepared`] slots `slots` into `cam` and appends, in slot
-/// order, the [`Splat`] of each one that [`project`] followed by [`Splat::new`] keeps: bit
-/// for bit the same values (the same operations in the same order; the unit tests compare
-/// the two paths), for less work:
-/// per-view constants are computed once, Gaussians far off the image are rejected by a
+/// Projects the Gaussians in [`Prepared`] slots `slots` into the camera of `view` and
+/// appends, in slot order, the [`Splat`] of each one that [`project`] followed by
+/// [`Splat::new`] keeps: bit for bit the same values (the same operations in the same
+/// order; the unit tests compare the two paths), for less work: per-view constants are
+/// computed once ([`ViewConsts`]), Gaussians far off the image are rejected by a
 /// conservative bound before the EWA projection (see [`ViewConsts::surely_off_grid`]),
-/// degree-0 colours come from [`Prepared::color0`], no [`Projected`] is built, and the
-/// Gaussians go through the arithmetic [`BATCH`] at a time, lane by lane without branches
-/// (see [`ViewConsts::project_lanes`]), which the compiler turns into vector instructions:
-/// 8 lanes with AVX-512 where `level` has it, 2 with SSE2 otherwise. Every lane performs
-/// the IEEE double-precision operations of the scalar formula, so the width changes no bit.
+/// degree-0 colours come from [`Prepared::color0`], no colour at all is evaluated when the
+/// view is not shaded (the splats then carry black: a render without a colour output never
+/// reads it, and spherical harmonics of degree 3 cost several times the rest of the
+/// projection), no [`Projected`] is built, and the Gaussians go through the arithmetic
+/// [`BATCH`] at a time, lane by lane without branches (see [`ViewConsts::project_lanes`]),
+/// which the compiler turns into vector instructions: 8 lanes with AVX-512 where `level`
+/// has it, 2 with SSE2 otherwise. Every lane performs the IEEE double-precision operations
+/// of the scalar formula, so the width changes no bit.
 pub(crate) fn project_chunk(
-    g: &Gaussians,
-    prep: &Prepared,
-    cam: &ViewCamera,
-    campos: [f64; 3],
-    slots: Range<usize>,
-    level: Level,
-    out: &mut impl SplatSink,
-) {
-    project_chunk_with(&ViewConsts::new(cam), g, prep, campos, slots, level, out);
-}
-
-/// Gaussians per batch of [`project_chunk`]: one AVX-512 vector of f64.
-const BATCH: usize = 8;
-
-/// [`project_chunk`] with its per-view constants given (the tests tamper with them).
-fn project_chunk_with(
     view: &ViewConsts,
     g: &Gaussians,
     prep: &Prepared,
@@ -609,9 +596,12 @@ fn project_chunk_with(
     for i in tail..slots.end {
         let mut lane = ProjectedLanes::<1>::default();
         view.project_lanes(prep, i, &mut lane);
-        lane.emit(g, prep, campos, i, out);
+        lane.emit(g, prep, campos, view.shade, i, out);
     }
 }
+
+/// Gaussians per batch of [`project_chunk`]: one AVX-512 vector of f64.
+const BATCH: usize = 8;
 
 /// [`project_batches`] compiled for AVX-512, where its lane loops become 8-lane vectors.
 #[cfg(target_arch = "x86_64")]
@@ -647,7 +637,7 @@ fn project_batches(
             .any(|&v| may_be_drawn(v))
         {
             view.project_lanes(prep, first, &mut lanes);
-            lanes.emit(g, prep, campos, first, out);
+            lanes.emit(g, prep, campos, view.shade, first, out);
         }
         first += BATCH;
     }
@@ -700,13 +690,15 @@ impl<const L: usize> Default for ProjectedLanes<L> {
 }
 
 impl<const L: usize> ProjectedLanes<L> {
-    /// Appends the [`Splat`] of every kept lane (Gaussian `first + l`), in lane order.
+    /// Appends the [`Splat`] of every kept lane (Gaussian `first + l`), in lane order;
+    /// black unless `shade`.
     #[inline(always)]
     fn emit(
         &self,
         g: &Gaussians,
         prep: &Prepared,
         campos: [f64; 3],
+        shade: bool,
         first: usize,
         out: &mut impl SplatSink,
     ) {
@@ -717,6 +709,7 @@ impl<const L: usize> ProjectedLanes<L> {
             let i = first + l;
             let id = prep.id(i);
             let color = match prep.color0.get(i) {
+                _ if !shade => [0.0; 3],
                 Some(c) => *c,
                 None => {
                     let mean = g.means[id as usize].map(f64::from);
@@ -759,8 +752,9 @@ impl<const L: usize> ProjectedLanes<L> {
 }
 
 /// What [`project`] and [`Splat::new`] compute from the camera alone, computed once per
-/// chunk with the same expressions.
-struct ViewConsts {
+/// view with the same expressions (the tests tamper with them), and whether the splats
+/// get their colour.
+pub(crate) struct ViewConsts {
     rotation: [[f64; 3]; 3],
     translation: [f64; 3],
     focal: [f64; 2],
@@ -780,10 +774,12 @@ struct ViewConsts {
     cull_gain: f64,
     width: u32,
     height: u32,
+    /// Whether the splats get their colour (see [`project_chunk`]).
+    shade: bool,
 }
 
 impl ViewConsts {
-    fn new(cam: &ViewCamera) -> Self {
+    pub(crate) fn new(cam: &ViewCamera, shade: bool) -> Self {
         let [fx, fy, cx, cy] = cam.intrinsics;
         let (w, h) = (f64::from(cam.width), f64::from(cam.height));
         let tan_x = tangent_range(cx, fx, w);
@@ -819,6 +815,7 @@ impl ViewConsts {
             cull_gain: jj * ww * (1.0 + 1e-6),
             width: cam.width,
             height: cam.height,
+            shade,
         }
     }
 
@@ -1392,7 +1389,7 @@ mod tests {
             levels.push(Level::detect());
         }
         for (c, cam) in cams.iter().enumerate() {
-            let mut view = ViewConsts::new(cam);
+            let mut view = ViewConsts::new(cam, true);
             tamper(&mut view);
             for (level, ids) in levels
                 .iter()
@@ -1402,7 +1399,7 @@ mod tests {
                 // Appends after what is there.
                 let mut got = vec![want.first().copied().unwrap_or(Splat::filler()); 2];
                 TRACE.with(|t| t.borrow_mut().clear());
-                project_chunk_with(&view, g, prep, cam.center(), ids.clone(), level, &mut got);
+                project_chunk(&view, g, prep, cam.center(), ids.clone(), level, &mut got);
                 let got = &got[2..];
                 let (mut wb, mut gb): (Vec<_>, Vec<_>) = (
                     want.iter()
@@ -1465,6 +1462,49 @@ mod tests {
         }
     }
 
+    /// Without `shade` the chunk projection keeps the same splats with the same geometry
+    /// and carries black, for every SH degree.
+    #[test]
+    fn chunk_projection_without_shading_differs_only_in_colour() {
+        let cams = cameras();
+        let base = scene(&cams, 1200, 7);
+        for degree in 0..=3 {
+            let g = with_degree(&base, degree, 200 + degree as u64);
+            let prep = prepare(&g).unwrap();
+            for cam in &cams {
+                let project = |shade: bool| {
+                    let mut out: Vec<Splat> = Vec::new();
+                    let view = ViewConsts::new(cam, shade);
+                    project_chunk(
+                        &view,
+                        &g,
+                        &prep,
+                        cam.center(),
+                        0..g.len(),
+                        Level::detect(),
+                        &mut out,
+                    );
+                    out
+                };
+                let (lit, plain) = (project(true), project(false));
+                assert!(!lit.is_empty());
+                assert_eq!(lit.len(), plain.len(), "SH degree {degree}");
+                for (a, b) in lit.iter().zip(&plain) {
+                    assert_eq!(b.color, [0.0; 3]);
+                    assert_eq!(
+                        bits(&Splat {
+                            color: [0.0; 3],
+                            ..*a
+                        }),
+                        bits(b),
+                        "SH degree {degree}"
+                    );
+                }
+                assert!(lit.iter().any(|s| s.color != [0.0; 3]));
+            }
+        }
+    }
+
     /// The scene exercises every branch: survivors, near-plane culls, exact culls of
     /// Gaussians whose centre lies off the grid, pre-culls, never-drawn opacities; and
     /// the comparison above has the power to catch a pre-cull bound that is too tight
@@ -1477,7 +1517,7 @@ mod tests {
         let prep = prepare(&g).unwrap();
         let n = g.len();
         for cam in &cams {
-            let view = ViewConsts::new(cam);
+            let view = ViewConsts::new(cam, true);
             let kept = reference(&g, &prep, cam, 0..n);
             let kept_ids: std::collections::HashSet<u32> = kept.iter().map(|s| s.id).collect();
             let (mut near, mut pre_culled, mut off_kept, mut off_exact_culled, mut never) =

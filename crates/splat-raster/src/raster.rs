@@ -10,7 +10,9 @@ use wide::f32x4;
 
 use crate::camera::ViewCamera;
 use crate::error::{RasterError, Result};
-use crate::project::{prepare, project, project_chunk, Prepared, Projected, Splat, SplatSink};
+use crate::project::{
+    prepare, project, project_chunk, Prepared, Projected, Splat, SplatSink, ViewConsts,
+};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::avx512::F32x16;
 use crate::simd::{bit_range, prefetch, Lanes, Level, UNIT_W};
@@ -545,7 +547,7 @@ impl<'g> Rasterizer<'g> {
         opts.validate()?;
         cam.check(view)?;
         out.resize(view, cam, opts);
-        let mut phases = self.bin(cam, &mut out.scratch);
+        let mut phases = self.bin(cam, opts.color, &mut out.scratch);
         let visible = out.scratch.depth_order.len();
         let t0 = Instant::now();
         let (tile_pairs, counts) = blend(cam, opts, self.level, out);
@@ -589,7 +591,7 @@ impl<'g> Rasterizer<'g> {
         opts.validate()?;
         cam.check(view)?;
         let s = &mut scratch.0;
-        let mut phases = self.bin(cam, s);
+        let mut phases = self.bin(cam, false, s);
         let t0 = Instant::now();
         let (tiles_x, tiles_y) = cam.tiles();
         rows.truncate(tiles_y);
@@ -658,10 +660,12 @@ impl<'g> Rasterizer<'g> {
     /// order. They stay in slot order, the Morton order of the Gaussians' means
     /// ([`Prepared`]), in which a tile's splats lie in a few runs of the buffer; depth
     /// order scatters them over all of it. Only 16-byte records (depth key, rectangle),
-    /// made while each splat is in cache, are sorted.
-    fn bin(&self, cam: &ViewCamera, s: &mut ViewScratch) -> Phases {
+    /// made while each splat is in cache, are sorted. The splats get their colour only
+    /// when `shade` (a render with a colour output).
+    fn bin(&self, cam: &ViewCamera, shade: bool, s: &mut ViewScratch) -> Phases {
         let t0 = Instant::now();
         let campos = cam.center();
+        let consts = ViewConsts::new(cam, shade);
         let n = self.len();
         if s.splats.len() != n {
             s.splats.clear();
@@ -678,9 +682,9 @@ impl<'g> Rasterizer<'g> {
                 let ids = first..first + splats.len();
                 let mut out = ChunkOut::new(splats, first, records);
                 project_chunk(
+                    &consts,
                     self.gaussians,
                     &self.prep,
-                    cam,
                     campos,
                     ids,
                     self.level,

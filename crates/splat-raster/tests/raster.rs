@@ -649,6 +649,11 @@ fn tiled_renderer_matches_brute_force_on_guitar() {
 
 /// Every output of two renders, bit for bit (the first difference is reported).
 fn assert_same_bytes(a: &ViewRender, b: &ViewRender, what: &str) {
+    assert_same_outputs(a, b, what, true);
+}
+
+/// [`assert_same_bytes`], the colour planes compared only `with_colour`.
+fn assert_same_outputs(a: &ViewRender, b: &ViewRender, what: &str, with_colour: bool) {
     fn same<T: PartialEq + std::fmt::Debug>(a: Option<&[T]>, b: Option<&[T]>, what: &str) {
         match (a, b) {
             (Some(a), Some(b)) => {
@@ -669,7 +674,7 @@ fn assert_same_bytes(a: &ViewRender, b: &ViewRender, what: &str) {
         ("T", ViewRender::transmittance),
         ("weights", ViewRender::topk_weights),
     ];
-    for (name, plane) in planes {
+    for (name, plane) in planes.into_iter().skip(usize::from(!with_colour)) {
         same(
             bits(plane(a)).as_deref(),
             bits(plane(b)).as_deref(),
@@ -678,6 +683,52 @@ fn assert_same_bytes(a: &ViewRender, b: &ViewRender, what: &str) {
     }
     same(a.topk_ids(), b.topk_ids(), &format!("{what}: ids"));
     assert_eq!(a.stats(), b.stats(), "{what}: stats");
+}
+
+/// A render without a colour output skips the colour of every splat (spherical harmonics
+/// of degree 3 here): every other output is the same bytes as with colour, for the
+/// lists-only path (K alone) and the path that also composites depth, alpha and T.
+#[test]
+fn renders_without_colour_give_the_other_outputs_of_renders_with_it() {
+    let cams = camera_at(
+        150,
+        110,
+        [110.0, 110.0, 75.0, 55.0],
+        [0.0; 3],
+        [0.0, 0.0, 1.0],
+    );
+    let g = random_scene(21, 3000, &cams);
+    assert_eq!(g.sh_degree, 3);
+    for raster in rasterizers(&g) {
+        for k in [None, Some(8)] {
+            for with_rest in [false, true] {
+                let colour = RenderOptions {
+                    top_k: k,
+                    ..if with_rest {
+                        all_outputs(k.unwrap_or(1))
+                    } else {
+                        RenderOptions::default()
+                    }
+                };
+                let plain = RenderOptions {
+                    color: false,
+                    ..colour
+                };
+                if plain.validate().is_err() {
+                    continue; // nothing left to render
+                }
+                let with = raster.render_view(&cams, 0, &colour).unwrap();
+                let without = raster.render_view(&cams, 0, &plain).unwrap();
+                assert!(with.color().is_some() && without.color().is_none());
+                let what = format!("{:?}, K {k:?}, all outputs {with_rest}", raster.simd());
+                assert_same_outputs(&with, &without, &what, false);
+                if k.is_some() {
+                    let ids = without.topk_ids().unwrap_or(&[]);
+                    assert!(ids.iter().any(|&i| i != NO_GAUSSIAN), "{what}: empty lists");
+                }
+            }
+        }
+    }
 }
 
 #[test]
