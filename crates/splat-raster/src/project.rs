@@ -578,25 +578,22 @@ pub(crate) fn project_chunk(
     view: &ViewConsts,
     g: &Gaussians,
     prep: &Prepared,
-    campos: [f64; 3],
     slots: Range<usize>,
     level: Level,
     out: &mut impl SplatSink,
 ) {
     let tail = match level {
-        Level::Portable => project_batches(view, g, prep, campos, slots.clone(), out),
+        Level::Portable => project_batches(view, g, prep, slots.clone(), out),
         // SAFETY: `Level::Avx512` is only made after `Level::detect` found AVX-512 F and DQ
         // on this CPU, which is all `project_batches_avx512` needs.
         #[cfg(target_arch = "x86_64")]
         #[allow(unsafe_code)]
-        Level::Avx512 => unsafe {
-            project_batches_avx512(view, g, prep, campos, slots.clone(), out)
-        },
+        Level::Avx512 => unsafe { project_batches_avx512(view, g, prep, slots.clone(), out) },
     };
     for i in tail..slots.end {
         let mut lane = ProjectedLanes::<1>::default();
         view.project_lanes(prep, i, &mut lane);
-        lane.emit(g, prep, campos, view.shade, i, out);
+        lane.emit(view, g, prep, i, out);
     }
 }
 
@@ -610,11 +607,10 @@ fn project_batches_avx512(
     view: &ViewConsts,
     g: &Gaussians,
     prep: &Prepared,
-    campos: [f64; 3],
     slots: Range<usize>,
     out: &mut impl SplatSink,
 ) -> usize {
-    project_batches(view, g, prep, campos, slots, out)
+    project_batches(view, g, prep, slots, out)
 }
 
 /// Projects the whole batches of `slots`; returns where the remainder (fewer than [`BATCH`]
@@ -624,7 +620,6 @@ fn project_batches(
     view: &ViewConsts,
     g: &Gaussians,
     prep: &Prepared,
-    campos: [f64; 3],
     slots: Range<usize>,
     out: &mut impl SplatSink,
 ) -> usize {
@@ -645,7 +640,7 @@ fn project_batches(
             .any(|&v| may_be_drawn(v))
         {
             view.project_lanes(prep, first, &mut lanes);
-            lanes.emit(g, prep, campos, view.shade, first, out);
+            lanes.emit(view, g, prep, first, out);
         }
         first += BATCH;
     }
@@ -724,14 +719,13 @@ impl<const L: usize> Default for ProjectedLanes<L> {
 
 impl<const L: usize> ProjectedLanes<L> {
     /// Appends the [`Splat`] of every kept lane (Gaussian `first + l`), in lane order;
-    /// black unless `shade`.
+    /// black unless `view` is shaded.
     #[inline(always)]
     fn emit(
         &self,
+        view: &ViewConsts,
         g: &Gaussians,
         prep: &Prepared,
-        campos: [f64; 3],
-        shade: bool,
         first: usize,
         out: &mut impl SplatSink,
     ) {
@@ -742,11 +736,11 @@ impl<const L: usize> ProjectedLanes<L> {
             let i = first + l;
             let id = prep.id(i);
             let color = match prep.color0.get(i) {
-                _ if !shade => [0.0; 3],
+                _ if !view.shade => [0.0; 3],
                 Some(c) => *c,
                 None => {
                     let mean = prep.means[i].map(f64::from);
-                    sh_color(g, campos, id as usize, mean).map(|x| x as f32)
+                    sh_color(g, view.campos, id as usize, mean).map(|x| x as f32)
                 }
             };
             #[cfg(test)]
@@ -807,6 +801,8 @@ pub(crate) struct ViewConsts {
     cull_gain: f64,
     width: u32,
     height: u32,
+    /// The camera centre (the view direction of the colour).
+    campos: [f64; 3],
     /// Whether the splats get their colour (see [`project_chunk`]).
     shade: bool,
 }
@@ -848,6 +844,7 @@ impl ViewConsts {
             cull_gain: jj * ww * (1.0 + 1e-6),
             width: cam.width,
             height: cam.height,
+            campos: cam.center(),
             shade,
         }
     }
@@ -1432,7 +1429,7 @@ mod tests {
                 // Appends after what is there.
                 let mut got = vec![want.first().copied().unwrap_or(Splat::filler()); 2];
                 TRACE.with(|t| t.borrow_mut().clear());
-                project_chunk(&view, g, prep, cam.center(), ids.clone(), level, &mut got);
+                project_chunk(&view, g, prep, ids.clone(), level, &mut got);
                 let got = &got[2..];
                 let (mut wb, mut gb): (Vec<_>, Vec<_>) = (
                     want.iter()
@@ -1508,15 +1505,7 @@ mod tests {
                 let project = |shade: bool| {
                     let mut out: Vec<Splat> = Vec::new();
                     let view = ViewConsts::new(cam, shade);
-                    project_chunk(
-                        &view,
-                        &g,
-                        &prep,
-                        cam.center(),
-                        0..g.len(),
-                        Level::detect(),
-                        &mut out,
-                    );
+                    project_chunk(&view, &g, &prep, 0..g.len(), Level::detect(), &mut out);
                     out
                 };
                 let (lit, plain) = (project(true), project(false));

@@ -664,7 +664,6 @@ impl<'g> Rasterizer<'g> {
     /// when `shade` (a render with a colour output).
     fn bin(&self, cam: &ViewCamera, shade: bool, s: &mut ViewScratch) -> Phases {
         let t0 = Instant::now();
-        let campos = cam.center();
         let consts = ViewConsts::new(cam, shade);
         let n = self.len();
         if s.splats.len() != n {
@@ -685,7 +684,6 @@ impl<'g> Rasterizer<'g> {
                     &consts,
                     self.gaussians,
                     &self.prep,
-                    campos,
                     ids,
                     self.level,
                     &mut out,
@@ -1522,12 +1520,12 @@ impl UnitLists {
 ///
 /// The tile's pixels are cut into units of N pixels: [`UNIT_W`] adjacent columns of
 /// N / [`UNIT_W`] adjacent rows (4 x 4 with 16 lanes, 4 x 1 with 4). First every splat is
-/// appended to the list of each unit its footprint reaches, in depth order; then each unit walks its own list with its whole state
-/// (transmittance, colour, depth and weight sums, stopped lanes, the K-th weight) in
-/// registers, and stops as soon as every pixel of it has stopped. Walking splats per unit
-/// rather than units per splat keeps that state out of memory between blends, so the only
-/// chain from one splat to the next is T's few operations and the exponentials of later
-/// splats overlap the current one.
+/// appended to the list of each unit its footprint reaches, in depth order; then each unit
+/// walks its own list with its whole state (transmittance, colour, depth and weight sums,
+/// stopped lanes, the K-th weight) in registers, and stops as soon as every pixel of it
+/// has stopped. Walking splats per unit rather than units per splat keeps that state out
+/// of memory between blends, so the only chain from one splat to the next is T's few
+/// operations and the exponentials of later splats overlap the current one.
 #[inline(always)]
 fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
@@ -1766,10 +1764,11 @@ struct UnitState<V: Lanes> {
 }
 
 /// One unit (number `unit` of the tile, whose top-left pixel is image pixel (`px0`, `py0`)
-/// and tile pixel `at`) over its splat list, front to back: INRIA's per-pixel step on all lanes at once (lanes
-/// outside an entry's footprint masked off). With `TOPK`, pixels whose weight beats their
-/// list's K-th enter their top-K list; with `CUTOFF` (lists only) a pixel also stops once
-/// its list is final. Writes T, the sums and the lists into `out`.
+/// and tile pixel `at`) over its splat list, front to back: INRIA's per-pixel step on all
+/// lanes at once (lanes outside an entry's footprint masked off). With `TOPK`, pixels
+/// whose weight beats their list's K-th enter their top-K list; with `CUTOFF` (lists only)
+/// a pixel also stops once its list is final. Writes T, the sums and the lists into
+/// `out`.
 #[inline(always)]
 fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
