@@ -69,6 +69,67 @@ pub(crate) struct Prepared {
     /// The colour as a [`Splat`] holds it when it is view independent (SH degree 0): what
     /// [`eval_sh`] returns, in single precision. Empty for SH degree > 0.
     pub color0: Vec<[f32; 3]>,
+    /// The bounds of each run of [`CULL_GROUP`] slots (the last one may be shorter) for
+    /// the per-view group cull of [`project_chunk`].
+    pub groups: Vec<CullGroup>,
+}
+
+/// Slots per [`CullGroup`]: 8 projection batches. The slots are in Morton order, so a
+/// group's Gaussians lie close together and a view usually sees all or none of them.
+pub(crate) const CULL_GROUP: usize = 64;
+
+/// A bounding sphere of the means of a run of slots and the largest variance bound of
+/// those that may be drawn, from which one test per view tells that no Gaussian of the run
+/// can become a [`Splat`] ([`ViewConsts::group_culled`]).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct CullGroup {
+    center: [f64; 3],
+    /// At least the distance of every mean from `center`.
+    radius: f64,
+    /// The largest [`Prepared::var_max`] of the run's Gaussians that may be drawn (NaN
+    /// if one is NaN, -1 if none may be drawn).
+    var_max: f64,
+}
+
+impl CullGroup {
+    fn new(means: &[[f32; 3]], var_max: &[f32]) -> Self {
+        let (lo, hi) = means.iter().fold(
+            ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
+            |(lo, hi), m| {
+                let m = m.map(f64::from);
+                (
+                    std::array::from_fn(|a| lo[a].min(m[a])),
+                    std::array::from_fn(|a| hi[a].max(m[a])),
+                )
+            },
+        );
+        let center: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
+        let radius = means
+            .iter()
+            .map(|m| {
+                let d: [f64; 3] = std::array::from_fn(|a| f64::from(m[a]) - center[a]);
+                (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+            })
+            .fold(0.0, f64::max);
+        let var_max = var_max
+            .iter()
+            .filter(|&&v| may_be_drawn(v))
+            .map(|&v| f64::from(v))
+            .fold(f64::from(NEVER_DRAWN), |a, v| {
+                if a.is_nan() || v.is_nan() {
+                    f64::NAN
+                } else {
+                    a.max(v)
+                }
+            });
+        CullGroup {
+            center,
+            // The rounding of the distances is ~1e-16 relative; the test's margin is far
+            // wider, and this one keeps the bound a bound by itself.
+            radius: radius * (1.0 + 1e-12),
+            var_max,
+        }
+    }
 }
 
 /// [`Prepared::var_max`] of a Gaussian that is never drawn.
@@ -155,7 +216,7 @@ pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
         .collect();
     let opacity: Vec<f64> = by_slot().map(|i| opacity_of(g.opacity_logits[i])).collect();
     let tau = opacity.iter().map(|&o| footprint_tau(o)).collect();
-    let var_max = by_slot()
+    let var_max: Vec<f32> = by_slot()
         .zip(&opacity)
         .map(|(i, &o)| {
             let o = o as f32;
@@ -174,14 +235,21 @@ pub(crate) fn prepare(g: &Gaussians) -> Result<Prepared> {
     } else {
         Vec::new()
     };
+    let means: Vec<[f32; 3]> = by_slot().map(|i| g.means[i]).collect();
+    let groups = means
+        .chunks(CULL_GROUP)
+        .zip(var_max.chunks(CULL_GROUP))
+        .map(|(m, v)| CullGroup::new(m, v))
+        .collect();
     Ok(Prepared {
-        means: by_slot().map(|i| g.means[i]).collect(),
+        means,
         order,
         cov3d,
         opacity,
         tau,
         var_max,
         color0,
+        groups,
     })
 }
 
@@ -564,8 +632,10 @@ impl SplatSink for Vec<Splat> {
 /// appends, in slot order, the [`Splat`] of each one that [`project`] followed by
 /// [`Splat::new`] keeps: bit for bit the same values (the same operations in the same
 /// order; the unit tests compare the two paths), for less work: per-view constants are
-/// computed once ([`ViewConsts`]), Gaussians far off the image are rejected by a
-/// conservative bound before the EWA projection (see [`ViewConsts::surely_off_grid`]),
+/// computed once ([`ViewConsts`]), runs of [`CULL_GROUP`] slots wholly behind the camera or
+/// beside the image are skipped after one test per run ([`ViewConsts::group_culled`]),
+/// Gaussians far off the image are rejected by a conservative bound before the EWA
+/// projection (see [`ViewConsts::surely_off_grid`]),
 /// degree-0 colours come from [`Prepared::color0`], no colour at all is evaluated when the
 /// view is not shaded (the splats then carry black: a render without a colour output never
 /// reads it, and spherical harmonics of degree 3 cost several times the rest of the
@@ -626,6 +696,8 @@ fn project_batches(
     let mut first = slots.start;
     let mut lanes = ProjectedLanes::<BATCH>::default();
     let harmonics = view.shade && prep.color0.is_empty();
+    // The group of the last batch tested and whether the view culls it.
+    let mut culled = (usize::MAX, false);
     while first + BATCH <= slots.end {
         if harmonics {
             prefetch_harmonics(
@@ -633,6 +705,19 @@ fn project_batches(
                 prep,
                 first + SH_PREFETCH_AHEAD..first + SH_PREFETCH_AHEAD + BATCH,
             );
+        }
+        let group = first / CULL_GROUP;
+        if group == (first + BATCH - 1) / CULL_GROUP {
+            if culled.0 != group {
+                culled = (
+                    group,
+                    prep.groups.get(group).is_some_and(|c| view.group_culled(c)),
+                );
+            }
+            if culled.1 {
+                first += BATCH;
+                continue;
+            }
         }
         // A batch of Gaussians that are never drawn (zero opacity) costs nothing.
         if prep.var_max[first..first + BATCH]
@@ -805,7 +890,57 @@ pub(crate) struct ViewConsts {
     campos: [f64; 3],
     /// Whether the splats get their colour (see [`project_chunk`]).
     shade: bool,
+    /// The half-spaces of [`ViewConsts::group_culled`]: camera depth, and the image's
+    /// left, right, top and bottom sides.
+    depth_plane: CullPlane,
+    side_planes: [CullPlane; 4],
 }
+
+/// A linear function of the world position, a·p + b, with the magnitudes of the terms
+/// it sums (|a| and |b| bound them component-wise) for a rounding margin.
+#[derive(Debug, Clone, Copy)]
+struct CullPlane {
+    a: [f64; 3],
+    b: f64,
+    a_abs: [f64; 3],
+    b_abs: f64,
+}
+
+impl CullPlane {
+    /// s·f·(camera axis `axis`) + k·(camera z): the camera axes are rows of R plus t.
+    fn new(r: &[[f64; 3]; 3], t: &[f64; 3], [s, f]: [f64; 2], axis: usize, k: f64) -> Self {
+        CullPlane {
+            a: std::array::from_fn(|j| s * f * r[axis][j] + k * r[2][j]),
+            b: s * f * t[axis] + k * t[2],
+            a_abs: std::array::from_fn(|j| (f * r[axis][j]).abs() + (k * r[2][j]).abs()),
+            b_abs: (f * t[axis]).abs() + (k * t[2]).abs(),
+        }
+    }
+
+    /// An upper bound of the function over `group`'s sphere plus `extra`, and the
+    /// magnitude of the terms behind it.
+    #[inline(always)]
+    fn max_over(&self, group: &CullGroup, extra: f64) -> (f64, f64) {
+        let c = group.center;
+        let norm = (self.a[0] * self.a[0] + self.a[1] * self.a[1] + self.a[2] * self.a[2]).sqrt();
+        let reach = group.radius * norm;
+        let at_center = self.a[0] * c[0] + self.a[1] * c[1] + self.a[2] * c[2] + self.b;
+        let magnitude = self.a_abs[0] * c[0].abs()
+            + self.a_abs[1] * c[1].abs()
+            + self.a_abs[2] * c[2].abs()
+            + self.b_abs;
+        (at_center + reach + extra, magnitude + reach + extra)
+    }
+}
+
+/// Pixels added to the footprint bound of the group cull: at least
+/// 3 √0.62 + 2 = 4.36 (the parts of the pre-cull's radius bound that do not scale with 1/z)
+/// and a little more (0.64 pixel) for the rounding of u and v.
+const GROUP_CULL_PIXELS: f64 = 5.0;
+
+/// The relative margin of the group cull's tests: far above the rounding of the values
+/// compared (a few 1e-16 of the magnitudes summed).
+const GROUP_CULL_MARGIN: f64 = 1e-6;
 
 impl ViewConsts {
     pub(crate) fn new(cam: &ViewCamera, shade: bool) -> Self {
@@ -846,7 +981,50 @@ impl ViewConsts {
             height: cam.height,
             campos: cam.center(),
             shade,
+            depth_plane: CullPlane::new(&r, &cam.translation, [0.0, 0.0], 0, 1.0),
+            side_planes: side_planes(cam, GROUP_CULL_PIXELS),
         }
+    }
+
+    /// Whether no Gaussian of `group` can become a [`Splat`] in this view, so that its
+    /// slots need no projection; `false` decides nothing.
+    ///
+    /// Why it never culls a Gaussian that [`project`] and [`Splat::new`] keep: each
+    /// Gaussian of the group has its mean p in the group's sphere and a variance bound
+    /// var <= the group's var_max (or is never drawn). The tests are on linear functions of
+    /// p, whose maximum over the sphere is the value at the centre plus radius · |a|:
+    /// - depth: if z < NEAR_PLANE everywhere in the sphere, [`project`] rejects every mean;
+    /// - a side, e.g. the left: with S = 3 √(G var_max) (G: the pre-cull's gain), if
+    ///   fx x + (cx + P) z + S < 0 everywhere (x, z: camera coordinates, P =
+    ///   [`GROUP_CULL_PIXELS`]), then a Gaussian either has z <= NEAR_PLANE (rejected) or,
+    ///   dividing by z > 0, u + P + 3 √(G var) / z < 0. Its pre-cull radius
+    ///   rb = 3 √(G var / z² + 0.62) + 2 is at most 3 √(G var) / z + 4.36, so
+    ///   u + rb < −0.64 and u < −2: [`ViewConsts::surely_off_grid`] rejects it (and it
+    ///   never rejects a Gaussian that [`project`] keeps). The other sides alike, with
+    ///   −fx x − (cx − P − grid width) z + S for the right side, and fy, cy, y for the
+    ///   rows;
+    /// - every test asks for a margin of [`GROUP_CULL_MARGIN`] times the magnitude of the
+    ///   terms summed, which covers the rounding of the bound here and of u, v, z, rb in
+    ///   the per-Gaussian tests (relative errors of a few 1e-16);
+    /// - NaN anywhere makes the comparisons false: no cull.
+    #[inline(always)]
+    fn group_culled(&self, group: &CullGroup) -> bool {
+        if group.var_max < 0.0 {
+            // Every Gaussian of the group is never drawn.
+            return true;
+        }
+        if group.var_max.is_nan() {
+            return false;
+        }
+        let (z_max, z_mag) = self.depth_plane.max_over(group, 0.0);
+        if z_max < NEAR_PLANE - GROUP_CULL_MARGIN * (z_mag + NEAR_PLANE) {
+            return true;
+        }
+        let s = SIGMA_EXTENT * (self.cull_gain * group.var_max).sqrt();
+        self.side_planes.iter().any(|p| {
+            let (v, mag) = p.max_over(group, s);
+            v < -GROUP_CULL_MARGIN * mag
+        })
     }
 
     /// Whether the 3-sigma square of [`project`] surely misses the tile grid, so that
@@ -984,6 +1162,21 @@ impl ViewConsts {
             }
         }
     }
+}
+
+/// The four side tests of [`ViewConsts::group_culled`] with `pixels` in place of
+/// [`GROUP_CULL_PIXELS`] (the tests loosen it).
+fn side_planes(cam: &ViewCamera, pixels: f64) -> [CullPlane; 4] {
+    let [fx, fy, cx, cy] = cam.intrinsics;
+    let (tiles_x, tiles_y) = cam.tiles();
+    let (gw, gh) = ((tiles_x * TILE) as f64, (tiles_y * TILE) as f64);
+    let (r, t) = (&cam.rotation, &cam.translation);
+    [
+        CullPlane::new(r, t, [1.0, fx], 0, cx + pixels),
+        CullPlane::new(r, t, [-1.0, fx], 0, gw + pixels - cx),
+        CullPlane::new(r, t, [1.0, fy], 1, cy + pixels),
+        CullPlane::new(r, t, [-1.0, fy], 1, gh + pixels - cy),
+    ]
 }
 
 /// `x.clamp(range[0], range[1])` for a range that is not NaN and ordered, written as
@@ -1579,6 +1772,93 @@ mod tests {
         }
         let too_tight = mismatches(&g, &prep, &cams, |v| v.cull_gain *= 0.6);
         assert!(!too_tight.is_empty());
+    }
+
+    /// Small Gaussians filling a box around the test cameras (a densely covered scene, in
+    /// which Morton-ordered runs of slots are compact), one in 50 large.
+    fn cloud(n: usize, seed: u64) -> Gaussians {
+        let mut rng = Rng(seed);
+        let mut g = Gaussians::default();
+        let mut pick = |lo: f64, hi: f64| rng.range(lo, hi) as f32;
+        let (means, log_scales, rotations, logits, dc): (Vec<_>, Vec<_>, Vec<_>, Vec<_>, Vec<_>) =
+            (0..n)
+                .map(|i| {
+                    let big = if i % 50 == 0 { 3.0 } else { 0.0 };
+                    (
+                        [pick(-12.0, 12.0), pick(-12.0, 12.0), pick(-12.0, 12.0)],
+                        [0; 3].map(|_| pick(-4.0, -2.0) + big),
+                        [0; 4].map(|_| pick(-1.0, 1.0)),
+                        pick(-6.0, 6.0),
+                        [0; 3].map(|_| pick(-2.0, 2.0)),
+                    )
+                })
+                .fold(
+                    Default::default(),
+                    |mut acc: (Vec<_>, Vec<_>, Vec<_>, Vec<_>, Vec<_>), x| {
+                        acc.0.push(x.0);
+                        acc.1.push(x.1);
+                        acc.2.push(x.2);
+                        acc.3.push(x.3);
+                        acc.4.push(x.4);
+                        acc
+                    },
+                );
+        g.means = means.into();
+        g.log_scales = log_scales.into();
+        g.rotations = rotations.into();
+        g.opacity_logits = logits.into();
+        g.sh_dc = dc.into();
+        g
+    }
+
+    /// The group cull (`ViewConsts::group_culled`) on a densely covered scene: every
+    /// camera culls groups both behind it and beside the image, no culled group holds a
+    /// Gaussian that the reference keeps, the projection equals the reference bit for bit,
+    /// and a cull loosened by 100 pixels per side is caught.
+    #[test]
+    fn a_dense_scene_exercises_the_group_cull_and_a_loose_one_is_caught() {
+        let cams = cameras();
+        let g = cloud(12_000, 5);
+        let prep = prepare(&g).unwrap();
+        let n = g.len();
+        assert_eq!(prep.groups.len(), n.div_ceil(CULL_GROUP));
+        for cam in &cams {
+            let view = ViewConsts::new(cam, true);
+            let kept: std::collections::HashSet<u32> = reference(&g, &prep, cam, 0..n)
+                .iter()
+                .map(|s| s.id)
+                .collect();
+            let (mut behind, mut beside) = (0, 0);
+            for (k, group) in prep.groups.iter().enumerate() {
+                if !view.group_culled(group) {
+                    continue;
+                }
+                let slots = k * CULL_GROUP..((k + 1) * CULL_GROUP).min(n);
+                for slot in slots.clone() {
+                    assert!(!kept.contains(&prep.id(slot)), "culled slot {slot} is kept");
+                }
+                let depths = slots.map(|s| cam.to_camera(prep.means[s].map(f64::from))[2]);
+                if depths.fold(f64::NEG_INFINITY, f64::max) <= NEAR_PLANE {
+                    behind += 1;
+                } else {
+                    beside += 1;
+                }
+            }
+            assert!(
+                kept.len() >= 500 && behind >= 10 && beside >= 10,
+                "{} kept, {behind} groups culled behind, {beside} beside",
+                kept.len()
+            );
+        }
+        assert_eq!(mismatches(&g, &prep, &cams, |_| {}), Vec::<String>::new());
+        let loose = mismatches(&g, &prep, &cams, |v| {
+            let (r2, t2) = (v.depth_plane.a, v.depth_plane.b);
+            for p in &mut v.side_planes {
+                p.a = std::array::from_fn(|j| p.a[j] - 100.0 * r2[j]);
+                p.b -= 100.0 * t2;
+            }
+        });
+        assert!(!loose.is_empty());
     }
 
     /// The Morton order against a reference that spells each code out as a string of
