@@ -331,8 +331,9 @@ impl ListScratch {
 
 /// The top-K lists of one tile, as [`Rasterizer::render_tiles`] hands them over: pixel
 /// (`x0 + col`, `y0 + row`) owns the K entries at `(row * TILE + col) * K` of
-/// [`TileLists::ids`] and [`TileLists::weights`] (descending weight, ties in depth order,
-/// padded with [`NO_GAUSSIAN`] and 0), for `col < width`, `row < height`.
+/// [`TileLists::ids`], [`TileLists::weights`] and [`TileLists::positions`] (descending
+/// weight, ties in depth order, padded with [`NO_GAUSSIAN`] and 0), for `col < width`,
+/// `row < height`.
 #[derive(Debug, Clone, Copy)]
 pub struct TileLists<'a> {
     x0: usize,
@@ -341,6 +342,8 @@ pub struct TileLists<'a> {
     height: usize,
     k: usize,
     ids: &'a [u32],
+    positions: &'a [u32],
+    splat_ids: &'a [u32],
     weights: &'a [f32],
 }
 
@@ -372,6 +375,17 @@ impl<'a> TileLists<'a> {
     /// The weights beside [`TileLists::ids`].
     pub fn weights(&self) -> &'a [f32] {
         self.weights
+    }
+    /// Beside [`TileLists::ids`], each entry's position in [`TileLists::splat_ids`]
+    /// ([`NO_GAUSSIAN`] for padding): `splat_ids()[positions()[i]] == ids()[i]`. The
+    /// tile's hits of one Gaussian share a position below `splat_ids().len()`, so a
+    /// consumer can sum per Gaussian into a dense array instead of a hash table.
+    pub fn positions(&self) -> &'a [u32] {
+        self.positions
+    }
+    /// The Gaussian ids of the splats the tile blended, in depth order (each at most once).
+    pub fn splat_ids(&self) -> &'a [u32] {
+        self.splat_ids
     }
     /// The K ids and weights of tile pixel (`col`, `row`); `None` outside the tile.
     pub fn pixel(&self, col: usize, row: usize) -> Option<(&'a [u32], &'a [f32])> {
@@ -569,7 +583,9 @@ impl<'g> Rasterizer<'g> {
     /// lists are those of [`Rasterizer::render_camera_into`] with `top_k: Some(k)`, but no
     /// image-sized buffer exists: a tile's lists live in the worker's scratch while
     /// `consume` reads them (registration sums them this way, while they are in cache).
-    /// `scratch` is reused from view to view.
+    /// Beside the ids, every entry's position in the tile's splat list
+    /// ([`TileLists::positions`], [`TileLists::splat_ids`]) lets a consumer sum per
+    /// Gaussian into a dense tile-local array. `scratch` is reused from view to view.
     pub fn render_tiles<R, F>(
         &self,
         cam: &ViewCamera,
@@ -1078,6 +1094,9 @@ struct TopKOut<'a> {
     base: usize,
     w: &'a mut [f32],
     id: &'a mut [u32],
+    /// Beside `id`, the entries' positions in the tile's list; empty where the render
+    /// hands out no positions.
+    at: &'a mut [u32],
 }
 
 /// One 64-byte line of f32 lanes: the scratch arrays are built from these so that every
@@ -1135,7 +1154,9 @@ struct TileScratch {
     wsum: PixelLines,
     /// Top-K weights, each list sorted by descending weight.
     lw: Vec<Line>,
-    /// Top-K Gaussian ids beside `lw`, as f32 bit patterns (only ever moved by blends).
+    /// Beside `lw`, the positions of the entries' splats in the tile's list (`list_ids`
+    /// maps them to Gaussian ids), as f32 bit patterns (only ever moved by blends);
+    /// [`NO_GAUSSIAN`] for padding.
     lid: Vec<Line>,
     /// K of the lists.
     k: usize,
@@ -1145,10 +1166,14 @@ struct TileScratch {
     /// Per blend unit: its lists' ranks from this one on are padding in every lane (they
     /// were never written in this tile: the lists are not cleared between tiles).
     fill: Vec<u16>,
+    /// The Gaussian ids of the tile's splats, in the order of its list: `lid` holds
+    /// positions in that list, which the output maps to ids.
+    list_ids: Vec<u32>,
     tile_start: Vec<usize>,
     tile_entries: Vec<RowEntry>,
     /// One tile's lists in pixel-major form, for [`Rasterizer::render_tiles`].
     tile_ids: Vec<u32>,
+    tile_positions: Vec<u32>,
     tile_weights: Vec<f32>,
     /// Blend counts of the current tile row (`counters` feature).
     counts: BlendCounts,
@@ -1212,6 +1237,7 @@ fn render_row(
                 base: x0 * k,
                 w,
                 id,
+                at: &mut [],
             };
             // Cleared before the lists are touched and set once padding is complete, so
             // that the flag never claims more than the buffers hold.
@@ -1297,8 +1323,10 @@ where
     let mut start = std::mem::take(&mut st.tile_start);
     let mut list = std::mem::take(&mut st.tile_entries);
     let mut ids = std::mem::take(&mut st.tile_ids);
+    let mut positions = std::mem::take(&mut st.tile_positions);
     let mut weights = std::mem::take(&mut st.tile_weights);
     ids.resize(TILE_PIXELS * k, NO_GAUSSIAN);
+    positions.resize(TILE_PIXELS * k, NO_GAUSSIAN);
     weights.resize(TILE_PIXELS * k, 0.0);
     let total = bucket_by_tile(entries, tiles_x, &mut start, &mut list);
     let y0 = ty * TILE;
@@ -1314,9 +1342,11 @@ where
             base: 0,
             w: &mut weights,
             id: &mut ids,
+            at: &mut positions,
         };
         if tile.is_empty() {
             pad_lists(&mut out, cols, rows);
+            st.list_ids.clear();
         } else {
             blend_tile_at::<true, true>(ctx, splats, tile, [x0, x1, y0, y1], st);
             match ctx.level.lanes() {
@@ -1331,6 +1361,8 @@ where
             height: rows,
             k,
             ids: &ids,
+            positions: &positions,
+            splat_ids: &st.list_ids,
             weights: &weights,
         };
         consume(&lists, state);
@@ -1338,6 +1370,7 @@ where
     st.tile_start = start;
     st.tile_entries = list;
     st.tile_ids = ids;
+    st.tile_positions = positions;
     st.tile_weights = weights;
     (total, st.counts)
 }
@@ -1351,6 +1384,9 @@ fn pad_lists(out: &mut TopKOut<'_>, cols: usize, rows: usize) {
         if let Some(w) = out.w.get_mut(slots.clone()) {
             w.fill(0.0);
         }
+        if let Some(at) = out.at.get_mut(slots.clone()) {
+            at.fill(NO_GAUSSIAN);
+        }
         if let Some(id) = out.id.get_mut(slots) {
             id.fill(NO_GAUSSIAN);
         }
@@ -1359,22 +1395,28 @@ fn pad_lists(out: &mut TopKOut<'_>, cols: usize, rows: usize) {
 
 /// Copies a finished tile's lists (padding included) from their rank-major SIMD form in
 /// units of `N` lanes ([`UNIT_W`] x N / [`UNIT_W`] pixels) into the output's per-pixel
-/// form, for the `cols` x `rows` pixels inside the image.
+/// form, for the `cols` x `rows` pixels inside the image, with each entry's Gaussian id
+/// (and, where `out` takes them, its position in the tile's list).
 fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, st: &TileScratch) {
     let k = out.k;
     let unit_h = N / UNIT_W;
     let (lw, lid) = (flat(&st.lw), flat(&st.lid));
+    let with_positions = !out.at.is_empty();
     for row in 0..rows {
         let slot = row * out.stride + out.base;
-        let (Some(dw), Some(did)) = (
-            out.w.get_mut(slot..slot + cols * k),
-            out.id.get_mut(slot..slot + cols * k),
-        ) else {
+        let span = slot..slot + cols * k;
+        let (Some(dw), Some(did)) = (out.w.get_mut(span.clone()), out.id.get_mut(span.clone()))
+        else {
             continue;
         };
+        let mut dat = if with_positions {
+            out.at.get_mut(span)
+        } else {
+            None
+        };
         // The row's pixels in runs of UNIT_W, one run per unit of this row.
-        let runs = dw.chunks_mut(UNIT_W * k).zip(did.chunks_mut(UNIT_W * k));
-        for (uc, (gw, gid)) in runs.enumerate() {
+        for (uc, run_start) in (0..cols).step_by(UNIT_W).enumerate() {
+            let run_len = UNIT_W.min(cols - run_start);
             let unit = (row / unit_h) * UNITS_PER_ROW + uc;
             let lane0 = (row % unit_h) * UNIT_W;
             // Ranks from the unit's fill on are padding (not cleared in the scratch).
@@ -1386,23 +1428,32 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
             ) else {
                 continue;
             };
-            // Rank-major (rank r of the unit's N pixels adjacent) to pixel-major.
+            // Rank-major (rank r of the unit's N pixels adjacent) to pixel-major; the
+            // scratch holds positions in the tile's list, the output Gaussian ids.
             for (r, (rw, rid)) in sw.chunks_exact(N).zip(sid.chunks_exact(N)).enumerate() {
-                let lanes = rw[lane0..lane0 + UNIT_W]
-                    .iter()
-                    .zip(&rid[lane0..lane0 + UNIT_W]);
-                for (lane, (w, id)) in lanes.enumerate() {
-                    if let (Some(dw), Some(did)) =
-                        (gw.get_mut(lane * k + r), gid.get_mut(lane * k + r))
-                    {
-                        *dw = *w;
-                        *did = id.to_bits();
+                for lane in 0..run_len {
+                    let o = (run_start + lane) * k + r;
+                    let (w, at) = (rw[lane0 + lane], rid[lane0 + lane].to_bits());
+                    if let (Some(dw), Some(did)) = (dw.get_mut(o), did.get_mut(o)) {
+                        *dw = w;
+                        *did = st.list_ids.get(at as usize).copied().unwrap_or(NO_GAUSSIAN);
+                    }
+                    if let Some(d) = dat.as_deref_mut().and_then(|d| d.get_mut(o)) {
+                        *d = at;
                     }
                 }
             }
-            for (pw, pid) in gw.chunks_mut(k).zip(gid.chunks_mut(k)) {
-                pw[fill..].fill(0.0);
-                pid[fill..].fill(NO_GAUSSIAN);
+            for lane in 0..run_len {
+                let pad = (run_start + lane) * k + fill..(run_start + lane + 1) * k;
+                if let Some(w) = dw.get_mut(pad.clone()) {
+                    w.fill(0.0);
+                }
+                if let Some(id) = did.get_mut(pad.clone()) {
+                    id.fill(NO_GAUSSIAN);
+                }
+                if let Some(at) = dat.as_deref_mut().and_then(|d| d.get_mut(pad)) {
+                    at.fill(NO_GAUSSIAN);
+                }
             }
         }
     }
@@ -1452,12 +1503,12 @@ fn blend_tile_avx512<const TOPK: bool, const CUTOFF: bool>(
     blend_tile::<F32x16, TOPK, CUTOFF>(splats, list, rect, st);
 }
 
-/// One entry of a blend unit's list: a splat and the unit's lanes inside its footprint
-/// (the columns of its rectangle, or of its row span where spans are solved; lane l in
-/// bit l).
+/// One entry of a blend unit's list: a splat, as its position in the tile's list, and the
+/// unit's lanes inside its footprint (the columns of its rectangle, or of its row span
+/// where spans are solved; lane l in bit l).
 #[derive(Debug, Clone, Copy)]
 struct UnitEntry {
-    splat: u32,
+    at: u32,
     lanes: u32,
 }
 
@@ -1478,7 +1529,7 @@ impl UnitLists {
         self.stride = list_len + 1;
         let need = units * self.stride;
         if self.entries.len() < need {
-            self.entries.resize(need, UnitEntry { splat: 0, lanes: 0 });
+            self.entries.resize(need, UnitEntry { at: 0, lanes: 0 });
         }
         self.len.clear();
         self.len.resize(units, 0);
@@ -1494,16 +1545,16 @@ impl UnitLists {
         }
     }
 
-    /// Appends (e, lanes) to `unit` if `lanes` is not empty, without a branch on it: the
+    /// Appends (at, lanes) to `unit` if `lanes` is not empty, without a branch on it: the
     /// entry is always written, into the slot after the unit's last entry, and counted
     /// only if it has lanes. A `unit` beyond the tile's units is ignored.
     #[inline(always)]
-    fn push_if_any(&mut self, unit: usize, e: u32, lanes: u32) {
+    fn push_if_any(&mut self, unit: usize, at: u32, lanes: u32) {
         let Some(len) = self.len.get_mut(unit) else {
             return;
         };
         if let Some(slot) = self.entries.get_mut(unit * self.stride + *len) {
-            *slot = UnitEntry { splat: e, lanes };
+            *slot = UnitEntry { at, lanes };
             *len += usize::from(lanes != 0);
         }
     }
@@ -1537,7 +1588,9 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     st.fill.resize(TILE_PIXELS / V::N, 0);
     let units = &mut st.units;
     units.reset(TILE_PIXELS / V::N, list.len());
-    distribute::<V>(splats, list, [x0, x1, y0, y1], units);
+    // Only top-K lists name their splats (by position; the ids come with the output).
+    let ids = if TOPK { Some(&mut st.list_ids) } else { None };
+    distribute::<V>(splats, list, [x0, x1, y0, y1], units, ids);
     let units = &st.units;
     let k = st.k;
     let mut out = UnitOut {
@@ -1564,6 +1617,7 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         let valid = bit_range(0, cols - 1) * row_starts(0, rows - 1);
         blend_unit::<V, TOPK, CUTOFF>(
             splats,
+            list,
             unit,
             [x0 + c0, y0 + r0],
             V::from_bits(valid),
@@ -1579,14 +1633,20 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
 /// trusted), so that units the ellipse misses get no entry; for taller units, the
 /// splat's rectangle (a span per row cost more to solve than the corner units it saves,
 /// measured). The pixels of an entry's lanes outside the ellipse fail the alpha test.
+/// Entries name their splat by its position in the list; `ids`, if given, receives the
+/// Gaussian id of every position.
 #[inline(always)]
 fn distribute<V: Lanes>(
     splats: &[Splat],
     list: &[RowEntry],
     [x0, x1, y0, y1]: [usize; 4],
     units: &mut UnitLists,
+    mut ids: Option<&mut Vec<u32>>,
 ) {
     let unit_h = V::N / UNIT_W;
+    if let Some(ids) = ids.as_deref_mut() {
+        ids.clear();
+    }
     for (i, &(e, rect)) in list.iter().enumerate() {
         // The list's splats are scattered over the view's (depth order, not screen order):
         // ask for one a few entries ahead, for the units' walks (and the spans below).
@@ -1596,6 +1656,11 @@ fn distribute<V: Lanes>(
         {
             prefetch(ahead);
         }
+        if let Some(ids) = ids.as_deref_mut() {
+            ids.push(splats.get(e as usize).map_or(NO_GAUSSIAN, |sp| sp.id));
+        }
+        // A tile's list holds each splat at most once, and splat ids are u32: fits.
+        let at = i as u32;
         let [rx0, rx1, ry0, ry1] = rect.map(usize::from);
         let (cx0, cx1) = (rx0.max(x0), rx1.min(x1 - 1));
         let (cy0, cy1) = (ry0.max(y0), ry1.min(y1 - 1));
@@ -1604,8 +1669,8 @@ fn distribute<V: Lanes>(
         }
         if unit_h > 1 {
             let rect = [cx0 - x0, cx1 - x0, cy0 - y0, cy1 - y0];
-            if !push_small_rectangle(units, e, rect) {
-                push_rectangle(units, unit_h, e, rect);
+            if !push_small_rectangle(units, at, rect) {
+                push_rectangle(units, unit_h, at, rect);
             }
             continue;
         }
@@ -1627,10 +1692,7 @@ fn distribute<V: Lanes>(
                 let c0 = uc * UNIT_W;
                 let (first, last) = (lo.max(c0) - c0, hi.min(c0 + UNIT_W - 1) - c0);
                 let lanes = bit_range(first, last);
-                units.push(
-                    (py - y0) * UNITS_PER_ROW + uc,
-                    UnitEntry { splat: e, lanes },
-                );
+                units.push((py - y0) * UNITS_PER_ROW + uc, UnitEntry { at, lanes });
             }
         }
     }
@@ -1641,7 +1703,7 @@ fn distribute<V: Lanes>(
 /// scene: the loops over unit rows and columns mispredicted their short, varying trip
 /// counts); returns false, having pushed nothing, for a larger one.
 #[inline(always)]
-fn push_small_rectangle(units: &mut UnitLists, e: u32, [c0, c1, r0, r1]: [usize; 4]) -> bool {
+fn push_small_rectangle(units: &mut UnitLists, at: u32, [c0, c1, r0, r1]: [usize; 4]) -> bool {
     let (ur0, uc0) = (r0 / UNIT_W, c0 / UNIT_W);
     if r1 >= (ur0 + 2) * UNIT_W || c1 >= (uc0 + 2) * UNIT_W {
         return false;
@@ -1657,15 +1719,15 @@ fn push_small_rectangle(units: &mut UnitLists, e: u32, [c0, c1, r0, r1]: [usize;
         let c = (cols >> (UNIT_W * uc)) & 0xF;
         let r = (rows >> (UNIT_W * ur)) & 0xF;
         let spread = (r & 1) | ((r & 2) << 3) | ((r & 4) << 6) | ((r & 8) << 9);
-        units.push_if_any(ur * UNITS_PER_ROW + uc, e, c * spread);
+        units.push_if_any(ur * UNITS_PER_ROW + uc, at, c * spread);
     }
     true
 }
 
-/// Appends splat `e` to every unit of height `unit_h` that the tile-local rectangle
+/// Appends the splat at `at` in the tile's list to every unit of height `unit_h` that the tile-local rectangle
 /// `[c0, c1, r0, r1]` (inclusive) reaches, with the unit's lanes inside it.
 #[inline(always)]
-fn push_rectangle(units: &mut UnitLists, unit_h: usize, e: u32, [c0, c1, r0, r1]: [usize; 4]) {
+fn push_rectangle(units: &mut UnitLists, unit_h: usize, at: u32, [c0, c1, r0, r1]: [usize; 4]) {
     for ur in r0 / unit_h..r1 / unit_h + 1 {
         let top = ur * unit_h;
         let (j0, j1) = (r0.max(top) - top, r1.min(top + unit_h - 1) - top);
@@ -1677,7 +1739,7 @@ fn push_rectangle(units: &mut UnitLists, unit_h: usize, e: u32, [c0, c1, r0, r1]
             units.push(
                 ur * UNITS_PER_ROW + uc,
                 UnitEntry {
-                    splat: e,
+                    at,
                     lanes: cols * rows,
                 },
             );
@@ -1772,6 +1834,7 @@ struct UnitState<V: Lanes> {
 #[inline(always)]
 fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
+    list: &[RowEntry],
     entries: &[UnitEntry],
     [px0, py0]: [usize; 2],
     valid: V::Mask,
@@ -1815,7 +1878,7 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
             if V::bits(lanes) == 0 {
                 continue;
             }
-            if let Some(sp) = splats.get(e.splat as usize) {
+            if let Some(sp) = splat_at(splats, list, e.at) {
                 (*a, *m) = footprint_alpha::<V>(sp, lanes, px, py);
             }
         }
@@ -1833,10 +1896,17 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                 // Every lane would add ω = 0 and keep its T, list and state.
                 continue;
             }
-            let Some(sp) = splats.get(e.splat as usize) else {
-                continue;
+            // Lists-only renders read nothing of the splat here (its position is the list
+            // entry); the others add its colour and depth.
+            let shading = if CUTOFF {
+                None
+            } else {
+                let Some(sp) = splat_at(splats, list, e.at) else {
+                    continue;
+                };
+                Some(sp)
             };
-            let (stop, w) = composite::<V>(sp, a, ok, !CUTOFF, &mut s);
+            let (stop, w) = composite::<V>(a, ok, shading, &mut s);
             #[cfg(feature = "counters")]
             {
                 out.counts.blends += u64::from(V::bits(w.gt(zero)).count_ones());
@@ -1851,8 +1921,8 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                     {
                         out.counts.inserted += u64::from(V::bits(cand).count_ones());
                     }
-                    let id = V::splat(f32::from_bits(sp.id));
-                    kth = insert_group::<V>(lw, lid, k, fill, cand, w, id);
+                    let at = V::splat(f32::from_bits(e.at));
+                    kth = insert_group::<V>(lw, lid, k, fill, cand, w, at);
                     // One more entry in each candidate lane (or one replaced when full).
                     fill = (fill + 1).min(k);
                 }
@@ -1956,6 +2026,13 @@ fn insert_group<V: Lanes>(
 /// Entries whose α [`blend_unit`] computes ahead of compositing them.
 const BATCH: usize = 8;
 
+/// The splat at position `at` of a tile's list.
+#[inline(always)]
+fn splat_at<'a>(splats: &'a [Splat], list: &[RowEntry], at: u32) -> Option<&'a Splat> {
+    list.get(at as usize)
+        .and_then(|&(e, _)| splats.get(e as usize))
+}
+
 /// The first half of INRIA's per-pixel step of splat `sp` for the N pixels of a unit, whose
 /// centres are (`px`, `py`) lane by lane: power = −½(a dx² + c dy²) − b dx dy,
 /// α = min(0.99, o·exp(power)); returns α and the lanes of `lanes` with power <= 0 and
@@ -1981,23 +2058,22 @@ fn footprint_alpha<V: Lanes>(sp: &Splat, lanes: V::Mask, px: V, py: V) -> (V, V:
 }
 
 /// The second half of the per-pixel step, on the lanes `ok` (in the footprint, α >= 1/255,
-/// not stopped): stop if T(1 − α) < 1e-4, else ω = T·α, T becomes T(1 − α) and (with
-/// `shade`) the sums grow by ω. Other lanes add ω = 0 (the sums are finite and >= 0, so
+/// not stopped): stop if T(1 − α) < 1e-4, else ω = T·α, T becomes T(1 − α) and (with a
+/// `shading` splat) the sums grow by ω times its colour and depth. Other lanes add ω = 0 (the sums are finite and >= 0, so
 /// x + 0 = x bit for bit): the result equals a scalar per-pixel loop exactly. Returns the
 /// lanes that stopped and the weights (0 outside the contributing lanes).
 #[inline(always)]
 fn composite<V: Lanes>(
-    sp: &Splat,
     alpha: V,
     ok: V::Mask,
-    shade: bool,
+    shading: Option<&Splat>,
     s: &mut UnitState<V>,
 ) -> (V::Mask, V) {
     let test_t = s.t * (V::splat(1.0) - alpha);
     let low = test_t.lt(V::splat(T_MIN));
     let contrib = ok & !low;
     let w = V::select(contrib, alpha * s.t, V::splat(0.0));
-    if shade {
+    if let Some(sp) = shading {
         s.r = s.r + V::splat(sp.color[0]) * w;
         s.g = s.g + V::splat(sp.color[1]) * w;
         s.b = s.b + V::splat(sp.color[2]) * w;
@@ -2228,10 +2304,10 @@ mod tests {
         assert_eq!((start, entries.len()), (vec![0; tiles_y + 1], 0));
     }
 
-    /// Every unit's (splat, lanes) entries, in order.
+    /// Every unit's (position, lanes) entries, in order.
     fn unit_entries(units: &UnitLists, count: usize) -> Vec<Vec<(u32, u32)>> {
         (0..count)
-            .map(|u| units.get(u).iter().map(|e| (e.splat, e.lanes)).collect())
+            .map(|u| units.get(u).iter().map(|e| (e.at, e.lanes)).collect())
             .collect()
     }
 

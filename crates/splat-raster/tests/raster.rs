@@ -768,11 +768,21 @@ fn render_tiles_hands_over_every_tile_once_with_the_lists_of_a_view_render() {
                             let (fi, fw) = full.topk(tile.x0() + col, tile.y0() + row).unwrap();
                             let i = (row * TILE + col) * k;
                             assert_eq!(&tile.ids()[i..i + k], ids);
+                            // Each entry's position names its id in the tile's splats.
+                            for (&at, &id) in tile.positions()[i..i + k].iter().zip(ids) {
+                                let named = tile.splat_ids().get(at as usize);
+                                assert_eq!(named.copied().unwrap_or(NO_GAUSSIAN), id);
+                                assert_eq!(at == NO_GAUSSIAN, id == NO_GAUSSIAN);
+                            }
                             if ids != fi || ws != fw {
                                 mismatches.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                             }
                         }
                     }
+                    let mut distinct = tile.splat_ids().to_vec();
+                    distinct.sort_unstable();
+                    distinct.dedup();
+                    assert_eq!(distinct.len(), tile.splat_ids().len(), "a splat twice");
                     assert!(tile.pixel(tile.width(), 0).is_none());
                     assert!(tile.pixel(0, tile.height()).is_none());
                 })
