@@ -2,11 +2,14 @@
 //! view in exact fixed point.
 //!
 //! One view is added in three steps, each parallel:
-//! 1. **Tiles.** Every 16x16 pixel tile sums its hits per (Gaussian, group) in a small
-//!    table that stays in L1 (neighbouring pixels share most of their top-K Gaussians), and
-//!    the masks' masses; ~10x fewer (Gaussian, group, Σq) records than hits come out. The
-//!    rasterizer hands each tile over as soon as its lists are rendered
-//!    ([`ViewContext::sum_tile`] inside `render_tiles`), so the lists are read from cache.
+//! 1. **Tiles.** Every 16x16 pixel tile sums its hits per (Gaussian, group), and the masks'
+//!    masses; ~10x fewer (Gaussian, group, Σq) records than hits come out (neighbouring
+//!    pixels share most of their top-K Gaussians). The rasterizer hands each tile over as
+//!    soon as its lists are rendered ([`ViewContext::sum_tile`] inside `render_tiles`), so
+//!    the lists are read from cache, with each hit's position in the tile's splat list:
+//!    the sums go into a dense (position, group) array, an add per hit. Tiles without
+//!    positions (the tests' whole-image source) or with too many groups or splats use a
+//!    small hash table that stays in L1.
 //! 2. **Buckets.** The records are counting-sorted by Gaussian block (4096 Gaussians).
 //! 3. **Blocks.** Each block of W adds its bucket: the block's entries (a few hundred KB)
 //!    stay in cache, and blocks are disjoint, so no locks.
@@ -334,6 +337,7 @@ pub(crate) struct RowOutput {
     counts: HitCounts,
     error: Option<String>,
     table: TileTable,
+    dense: DenseSums,
 }
 
 impl RowOutput {
@@ -356,6 +360,10 @@ pub(crate) struct TileHits<'a> {
     pub row_stride: usize,
     pub ids: &'a [u32],
     pub weights: &'a [f32],
+    /// Beside `ids`, each hit's position in `splat_ids` (the rasterizer's
+    /// [`splat_raster::TileLists::positions`]), for the dense sum; `None`: the table.
+    pub positions: Option<&'a [u32]>,
+    pub splat_ids: &'a [u32],
 }
 
 impl<'a> From<&splat_raster::TileLists<'a>> for TileHits<'a> {
@@ -368,6 +376,8 @@ impl<'a> From<&splat_raster::TileLists<'a>> for TileHits<'a> {
             row_stride: splat_raster::TILE,
             ids: t.ids(),
             weights: t.weights(),
+            positions: Some(t.positions()),
+            splat_ids: t.splat_ids(),
         }
     }
 }
@@ -584,6 +594,8 @@ impl Accumulator {
                     row_stride: ctx.width,
                     ids: &hits.ids[first..],
                     weights: &hits.weights[first..],
+                    positions: None,
+                    splat_ids: &[],
                 };
                 ctx.sum_tile(&tile, out);
             }
@@ -693,6 +705,11 @@ impl ViewContext<'_> {
             ));
             return;
         }
+        if let Some(positions) = tile.positions {
+            if self.sum_tile_dense(labels, tile, positions, out) {
+                return;
+            }
+        }
         let table = &mut out.table;
         for row in 0..tile.height {
             let y = tile.y0 + row;
@@ -753,7 +770,159 @@ impl ViewContext<'_> {
         }
         table.flush(&mut out.records);
     }
+
+    /// [`ViewContext::sum_tile`] with the rasterizer's list positions: the tile's sums per
+    /// (Gaussian, group) in a dense array indexed by (position in the tile's splat list,
+    /// the group's rank among the tile's groups), an add per hit where the table probes
+    /// a hash. The same records (in another order, which step 2 does not see: the sums
+    /// are exact integers) and the same masses and counts. Returns false, having changed
+    /// nothing, where the tile has more than [`DENSE_GROUPS`] groups or more than
+    /// [`DENSE_CELLS`] (position, group) cells, or a label names no mask (the table path
+    /// then sums it, or reports the label).
+    fn sum_tile_dense<L: Label>(
+        &self,
+        labels: &[L],
+        tile: &TileHits<'_>,
+        positions: &[u32],
+        out: &mut RowOutput,
+    ) -> bool {
+        let (k, width) = (self.k, self.width);
+        let dense = &mut out.dense;
+        // Each pixel's code: its group's rank among the tile's groups, NO_LABEL or
+        // UNGROUPED.
+        let mut tile_groups = [NO_GROUP; DENSE_GROUPS];
+        let mut count = 0;
+        dense.code.clear();
+        for row in 0..tile.height {
+            let first = (tile.y0 + row) * width + tile.x0;
+            let Some(row_labels) = labels.get(first..first + tile.width) else {
+                return false;
+            };
+            for label in row_labels {
+                let code = match label.local() {
+                    None => NO_LABEL,
+                    Some(local) => match self.groups.get(local) {
+                        None => return false,
+                        Some(&NO_GROUP) => UNGROUPED,
+                        Some(&group) => match tile_groups[..count].iter().position(|&g| g == group)
+                        {
+                            Some(j) => j as u8,
+                            None if count < DENSE_GROUPS => {
+                                tile_groups[count] = group;
+                                count += 1;
+                                (count - 1) as u8
+                            }
+                            None => return false,
+                        },
+                    },
+                };
+                dense.code.push(code);
+            }
+        }
+        let cells = tile.splat_ids.len() * count;
+        if cells > DENSE_CELLS {
+            return false;
+        }
+        dense.sums.clear();
+        dense.sums.resize(cells, (0, 0));
+        for row in 0..tile.height {
+            for col in 0..tile.width {
+                let code = dense.code[row * tile.width + col];
+                if code == NO_LABEL {
+                    continue;
+                }
+                let x = tile.x0 + col;
+                let y = tile.y0 + row;
+                let first = (row * tile.row_stride + col) * k;
+                let (Some(ids), Some(ws), Some(ats)) = (
+                    tile.ids.get(first..first + k),
+                    tile.weights.get(first..first + k),
+                    positions.get(first..first + k),
+                ) else {
+                    out.error = Some(format!("the lists of pixel ({x}, {y}) are missing"));
+                    return true;
+                };
+                let mut pixel = 0u128;
+                let mut n = 0u64;
+                for ((&g, &w), &at) in ids.iter().zip(ws).zip(ats) {
+                    if g == NO_GAUSSIAN {
+                        break;
+                    }
+                    if g as usize >= self.num_gaussians {
+                        out.error = Some(format!(
+                            "the rasterizer returned Gaussian {g} of {}",
+                            self.num_gaussians
+                        ));
+                        return true;
+                    }
+                    let q = quantise(w);
+                    pixel += u128::from(q);
+                    n += 1;
+                    if code != UNGROUPED && q != 0 {
+                        let cell = at as usize * count + usize::from(code);
+                        let Some(sum) = dense.sums.get_mut(cell) else {
+                            out.error = Some(format!(
+                                "the rasterizer placed Gaussian {g} at {at} of the {} splats \
+                                 of the tile at ({}, {})",
+                                tile.splat_ids.len(),
+                                tile.x0,
+                                tile.y0
+                            ));
+                            return true;
+                        };
+                        let (lo, carry) = sum.0.overflowing_add(q);
+                        *sum = (lo, sum.1 + u64::from(carry));
+                    }
+                }
+                // A labelled pixel's label is a mask of the view (checked above).
+                if let Some(local) = labels.get(y * width + x).and_then(|l| l.local()) {
+                    out.mass[local] += pixel;
+                }
+                if code != UNGROUPED {
+                    out.counts.pixels += 1;
+                    out.counts.hits += n;
+                }
+            }
+        }
+        if count > 0 {
+            for (&g, sums) in tile.splat_ids.iter().zip(dense.sums.chunks_exact(count)) {
+                for (&group, &(lo, hi)) in tile_groups.iter().zip(sums) {
+                    if (lo, hi) == (0, 0) {
+                        continue;
+                    }
+                    if g as usize >= self.num_gaussians {
+                        out.error = Some(format!(
+                            "the rasterizer listed Gaussian {g} of {} in the tile at ({}, {})",
+                            self.num_gaussians, tile.x0, tile.y0
+                        ));
+                        return true;
+                    }
+                    out.records.push(Record { g, group, lo, hi });
+                }
+            }
+        }
+        true
+    }
 }
+
+/// The dense sums of [`ViewContext::sum_tile_dense`], reused from tile to tile: a code per
+/// pixel of the tile and the (low, high) halves of each (position, group) sum.
+#[derive(Debug, Default)]
+pub(crate) struct DenseSums {
+    code: Vec<u8>,
+    sums: Vec<(u64, u64)>,
+}
+
+/// Groups of one tile that the dense sum handles (a tile of a real view has a few).
+const DENSE_GROUPS: usize = 8;
+/// (position, group) cells of one tile that the dense sum handles: at most 256 KiB of sums
+/// per tile row's output (two views' rows are alive at once, ~90 of them at 1000x730; a
+/// cap of 4,096 cells held the same peak RSS and sent more tiles to the slower table).
+const DENSE_CELLS: usize = 1 << 14;
+/// Pixel codes of the dense sum beside the group ranks (< [`DENSE_GROUPS`]): no label, a
+/// mask in no group.
+const NO_LABEL: u8 = u8::MAX;
+const UNGROUPED: u8 = u8::MAX - 1;
 
 /// Step 2: every row's records, counting-sorted by Gaussian block into `sorted`; returns
 /// the `blocks + 1` bounds of the buckets.
@@ -977,6 +1146,152 @@ mod tests {
         let mut sums: Vec<(u32, u32, u128)> = out.iter().map(|r| (r.g, r.group, r.sum())).collect();
         sums.sort_unstable();
         assert_eq!(sums, [(9, 4, 5 * u128::from(big) + 11), (9, 5, 1)]);
+    }
+
+    /// What `sum_random_tile` compares: records summed per key, masses, counts, error,
+    /// whether the dense sum ran.
+    type TileSums = (
+        BTreeMap<(u32, u32), u128>,
+        Vec<u128>,
+        HitCounts,
+        Option<String>,
+        bool,
+    );
+
+    /// One random tile summed with the rasterizer's positions and without them (the
+    /// table).
+    fn sum_random_tile(
+        [groups, list_len, k]: [usize; 3],
+        seed: u64,
+        tamper: impl Fn(&mut Vec<u32>, &mut Vec<u16>, &mut Vec<u32>),
+    ) -> [TileSums; 2] {
+        let (n, masks, w, h) = (50_000usize, 24usize, 29usize, 21usize);
+        let mut state = SplitMix64::new(seed);
+        let mut next = |m: usize| (state.next_u64() % m as u64) as usize;
+        // Masks 0..masks of one view: groups 0..groups, every fifth in none.
+        let mask_group: Vec<u32> = (0..masks)
+            .map(|m| {
+                if m % 5 == 4 {
+                    NO_GROUP
+                } else {
+                    (m % groups) as u32
+                }
+            })
+            .collect();
+        let mut labels: Vec<u16> = (0..w * h)
+            .map(|_| {
+                if next(9) == 0 {
+                    u16::MAX
+                } else {
+                    next(masks) as u16
+                }
+            })
+            .collect();
+        let mut splat_ids: Vec<u32> = Vec::new();
+        while splat_ids.len() < list_len {
+            let id = next(n) as u32;
+            if !splat_ids.contains(&id) || list_len > 2000 {
+                splat_ids.push(id);
+            }
+        }
+        splat_ids.sort_unstable();
+        splat_ids.dedup();
+        // The tile at (13, 5): 16 x 16 pixels, lists laid out with a row stride of 16.
+        let (x0, y0) = (13, 5);
+        let mut ids = vec![NO_GAUSSIAN; TILE * TILE * k];
+        let mut positions = vec![NO_GAUSSIAN; TILE * TILE * k];
+        let mut weights = vec![0f32; TILE * TILE * k];
+        for px in 0..TILE * TILE {
+            for r in 0..next(k + 1) {
+                let at = next(splat_ids.len());
+                positions[px * k + r] = at as u32;
+                ids[px * k + r] = splat_ids[at];
+                // Zeros, and weights near 4 whose sums carry into the high half.
+                weights[px * k + r] = match next(10) {
+                    0 => 0.0,
+                    1 => 3.999,
+                    _ => next(1000) as f32 / 1024.0,
+                };
+            }
+        }
+        tamper(&mut positions, &mut labels, &mut splat_ids);
+        let acc = Accumulator::new(n, masks, groups);
+        let ctx = acc
+            .view_context(LabelPlane::U16(&labels), w, 0, &mask_group, masks, k, 0)
+            .unwrap();
+        [Some(&positions[..]), None].map(|positions| {
+            let mut out = RowOutput::default();
+            let tile = TileHits {
+                x0,
+                y0,
+                width: TILE,
+                height: TILE,
+                row_stride: TILE,
+                ids: &ids,
+                weights: &weights,
+                positions,
+                splat_ids: &splat_ids,
+            };
+            ctx.sum_tile(&tile, &mut out);
+            let mut sums = BTreeMap::new();
+            for r in &out.records {
+                *sums.entry((r.g, r.group)).or_default() += r.sum();
+            }
+            let dense = !out.dense.sums.is_empty();
+            (sums, out.mass, out.counts, out.error, dense)
+        })
+    }
+
+    /// The dense tile sum equals the table's sums, masses and counts, with few and many
+    /// groups, short and long splat lists, K = 1 and 6; it hands tiles with more groups or
+    /// cells than it holds to the table; bad labels, positions and splat ids are errors.
+    #[test]
+    fn dense_tile_sums_equal_the_table_and_hand_over_what_they_cannot_hold() {
+        let (mut ran, mut carried) = ([0, 0], 0);
+        for (i, &(groups, list_len, k)) in [
+            (1, 5, 6),
+            (3, 300, 6),
+            (3, 300, 1),
+            (DENSE_GROUPS, 2000, 6),
+            (DENSE_GROUPS + 1, 300, 6),
+            (2, DENSE_CELLS, 6),
+        ]
+        .iter()
+        .enumerate()
+        {
+            let [dense, table] = sum_random_tile([groups, list_len, k], i as u64, |_, _, _| {});
+            assert_eq!(dense.0, table.0, "case {i}: sums");
+            assert!(!table.0.is_empty());
+            carried += usize::from(table.0.values().any(|&s| s > u128::from(u64::MAX)));
+            assert_eq!(
+                (&dense.1, dense.2, &dense.3),
+                (&table.1, table.2, &table.3),
+                "case {i}"
+            );
+            assert!(table.2.hits > 0 && dense.3.is_none());
+            let fits = groups <= DENSE_GROUPS && list_len * groups <= DENSE_CELLS;
+            assert_eq!(dense.4, fits, "case {i}: dense sum ran");
+            ran[usize::from(fits)] += 1;
+        }
+        assert_eq!(ran, [2, 4]);
+        assert!(carried >= 3, "{carried} cases with sums past 64 bits");
+        // A position past the tile's splats.
+        let [dense, _] = sum_random_tile([3, 300, 6], 9, |at, _, _| {
+            at.iter_mut()
+                .filter(|a| **a != NO_GAUSSIAN)
+                .for_each(|a| *a = 300);
+        });
+        let err = dense.3.unwrap_or_default();
+        assert!(err.contains("at 300 of the 300 splats"), "{err}");
+        // A splat list naming a Gaussian past the scene's.
+        let [dense, table] = sum_random_tile([3, 300, 6], 9, |_, _, ids| ids[0] = 60_000);
+        let err = dense.3.unwrap_or_default();
+        assert!(err.contains("listed Gaussian 60000"), "{err}");
+        assert!(table.3.is_none());
+        // A label beyond the view's masks: the table reports it.
+        let [dense, table] =
+            sum_random_tile([3, 300, 6], 9, |_, labels, _| labels[29 * 7 + 15] = 40);
+        assert!(dense.3.is_some_and(|e| e.contains("label 40")) && table.3.is_some());
     }
 
     #[test]
