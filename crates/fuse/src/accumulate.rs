@@ -740,27 +740,21 @@ impl ViewContext<'_> {
                     table.flush(&mut out.records);
                     return;
                 };
-                let mut pixel = 0u128;
-                let mut n = 0u64;
-                for (&g, &w) in ids.iter().zip(ws) {
-                    if g == NO_GAUSSIAN {
-                        break;
+                let records = &mut out.records;
+                let summed = self.pixel_hits(ids, ws, |_, g, q| {
+                    if group != NO_GROUP {
+                        table.add(g, group, q, records);
                     }
-                    if g as usize >= self.num_gaussians {
-                        out.error = Some(format!(
-                            "the rasterizer returned Gaussian {g} of {}",
-                            self.num_gaussians
-                        ));
+                    Ok(())
+                });
+                let (pixel, n) = match summed {
+                    Ok(sums) => sums,
+                    Err(e) => {
+                        out.error = Some(e);
                         table.flush(&mut out.records);
                         return;
                     }
-                    let q = quantise(w);
-                    pixel += u128::from(q);
-                    n += 1;
-                    if group != NO_GROUP && q != 0 {
-                        table.add(g, group, q, &mut out.records);
-                    }
-                }
+                };
                 out.mass[local] += pixel;
                 if group != NO_GROUP {
                     out.counts.pixels += 1;
@@ -769,6 +763,38 @@ impl ViewContext<'_> {
             }
         }
         table.flush(&mut out.records);
+    }
+
+    /// One pixel's list (`ids`, `ws`, up to the first padding entry): its summed fixed-point
+    /// weight and its hit count, calling `add(rank, g, q)` for every hit of nonzero weight
+    /// q; an error for a Gaussian past the scene's, or from `add`.
+    #[inline(always)]
+    fn pixel_hits(
+        &self,
+        ids: &[u32],
+        ws: &[f32],
+        mut add: impl FnMut(usize, u32, u64) -> Result<(), String>,
+    ) -> Result<(u128, u64), String> {
+        let mut pixel = 0u128;
+        let mut n = 0u64;
+        for (rank, (&g, &w)) in ids.iter().zip(ws).enumerate() {
+            if g == NO_GAUSSIAN {
+                break;
+            }
+            if g as usize >= self.num_gaussians {
+                return Err(format!(
+                    "the rasterizer returned Gaussian {g} of {}",
+                    self.num_gaussians
+                ));
+            }
+            let q = quantise(w);
+            pixel += u128::from(q);
+            n += 1;
+            if q != 0 {
+                add(rank, g, q)?;
+            }
+        }
+        Ok((pixel, n))
     }
 
     /// [`ViewContext::sum_tile`] with the rasterizer's list positions: the tile's sums per
@@ -842,38 +868,33 @@ impl ViewContext<'_> {
                     out.error = Some(format!("the lists of pixel ({x}, {y}) are missing"));
                     return true;
                 };
-                let mut pixel = 0u128;
-                let mut n = 0u64;
-                for ((&g, &w), &at) in ids.iter().zip(ws).zip(ats) {
-                    if g == NO_GAUSSIAN {
-                        break;
+                let sums = &mut dense.sums;
+                let summed = self.pixel_hits(ids, ws, |rank, g, q| {
+                    if code == UNGROUPED {
+                        return Ok(());
                     }
-                    if g as usize >= self.num_gaussians {
-                        out.error = Some(format!(
-                            "the rasterizer returned Gaussian {g} of {}",
-                            self.num_gaussians
+                    let at = ats[rank];
+                    let cell = at as usize * count + usize::from(code);
+                    let Some(sum) = sums.get_mut(cell) else {
+                        return Err(format!(
+                            "the rasterizer placed Gaussian {g} at {at} of the {} splats of \
+                             the tile at ({}, {})",
+                            tile.splat_ids.len(),
+                            tile.x0,
+                            tile.y0
                         ));
+                    };
+                    let (lo, carry) = sum.0.overflowing_add(q);
+                    *sum = (lo, sum.1 + u64::from(carry));
+                    Ok(())
+                });
+                let (pixel, n) = match summed {
+                    Ok(sums) => sums,
+                    Err(e) => {
+                        out.error = Some(e);
                         return true;
                     }
-                    let q = quantise(w);
-                    pixel += u128::from(q);
-                    n += 1;
-                    if code != UNGROUPED && q != 0 {
-                        let cell = at as usize * count + usize::from(code);
-                        let Some(sum) = dense.sums.get_mut(cell) else {
-                            out.error = Some(format!(
-                                "the rasterizer placed Gaussian {g} at {at} of the {} splats \
-                                 of the tile at ({}, {})",
-                                tile.splat_ids.len(),
-                                tile.x0,
-                                tile.y0
-                            ));
-                            return true;
-                        };
-                        let (lo, carry) = sum.0.overflowing_add(q);
-                        *sum = (lo, sum.1 + u64::from(carry));
-                    }
-                }
+                };
                 // A labelled pixel's label is a mask of the view (checked above).
                 if let Some(local) = labels.get(y * width + x).and_then(|l| l.local()) {
                     out.mass[local] += pixel;
