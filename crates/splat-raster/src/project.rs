@@ -75,7 +75,7 @@ pub(crate) struct Prepared {
 }
 
 /// Slots per [`CullGroup`]: 8 projection batches. The slots are in Morton order, so a
-/// group's Gaussians lie close together and a view usually sees all or none of them.
+/// group's Gaussians lie close together and a view often sees all or none of them.
 pub(crate) const CULL_GROUP: usize = 64;
 
 /// A bounding sphere of the means of a run of slots and the largest variance bound of
