@@ -814,35 +814,36 @@ impl ViewContext<'_> {
     ) -> bool {
         let (k, width) = (self.k, self.width);
         let dense = &mut out.dense;
-        // Each pixel's code: its group's rank among the tile's groups, NO_LABEL or
+        // Each labelled pixel's mask and code: its group's rank among the tile's groups, or
         // UNGROUPED.
         let mut tile_groups = [NO_GROUP; DENSE_GROUPS];
         let mut count = 0;
-        dense.code.clear();
+        dense.pixels.clear();
         for row in 0..tile.height {
             let first = (tile.y0 + row) * width + tile.x0;
             let Some(row_labels) = labels.get(first..first + tile.width) else {
                 return false;
             };
             for label in row_labels {
-                let code = match label.local() {
-                    None => NO_LABEL,
-                    Some(local) => match self.groups.get(local) {
-                        None => return false,
-                        Some(&NO_GROUP) => UNGROUPED,
-                        Some(&group) => match tile_groups[..count].iter().position(|&g| g == group)
-                        {
-                            Some(j) => j as u8,
-                            None if count < DENSE_GROUPS => {
-                                tile_groups[count] = group;
-                                count += 1;
-                                (count - 1) as u8
-                            }
-                            None => return false,
-                        },
-                    },
+                let Some(mask) = label.local() else {
+                    dense.pixels.push(None);
+                    continue;
                 };
-                dense.code.push(code);
+                let Some(&group) = self.groups.get(mask) else {
+                    return false;
+                };
+                let code = if group == NO_GROUP {
+                    UNGROUPED
+                } else if let Some(j) = tile_groups[..count].iter().position(|&g| g == group) {
+                    j as u8
+                } else if count < DENSE_GROUPS {
+                    tile_groups[count] = group;
+                    count += 1;
+                    (count - 1) as u8
+                } else {
+                    return false;
+                };
+                dense.pixels.push(Some((mask, code)));
             }
         }
         let cells = tile.splat_ids.len() * count;
@@ -853,10 +854,9 @@ impl ViewContext<'_> {
         dense.sums.resize(cells, (0, 0));
         for row in 0..tile.height {
             for col in 0..tile.width {
-                let code = dense.code[row * tile.width + col];
-                if code == NO_LABEL {
+                let Some((mask, code)) = dense.pixels[row * tile.width + col] else {
                     continue;
-                }
+                };
                 let x = tile.x0 + col;
                 let y = tile.y0 + row;
                 let first = (row * tile.row_stride + col) * k;
@@ -895,10 +895,7 @@ impl ViewContext<'_> {
                         return true;
                     }
                 };
-                // A labelled pixel's label is a mask of the view (checked above).
-                if let Some(local) = labels.get(y * width + x).and_then(|l| l.local()) {
-                    out.mass[local] += pixel;
-                }
+                out.mass[mask] += pixel;
                 if code != UNGROUPED {
                     out.counts.pixels += 1;
                     out.counts.hits += n;
@@ -926,11 +923,12 @@ impl ViewContext<'_> {
     }
 }
 
-/// The dense sums of [`ViewContext::sum_tile_dense`], reused from tile to tile: a code per
-/// pixel of the tile and the (low, high) halves of each (position, group) sum.
+/// The dense sums of [`ViewContext::sum_tile_dense`], reused from tile to tile: per pixel
+/// of the tile its mask and code (none where unlabelled), and the (low, high) halves of
+/// each (position, group) sum.
 #[derive(Debug, Default)]
 pub(crate) struct DenseSums {
-    code: Vec<u8>,
+    pixels: Vec<Option<(usize, u8)>>,
     sums: Vec<(u64, u64)>,
 }
 
@@ -940,10 +938,9 @@ const DENSE_GROUPS: usize = 8;
 /// per tile row's output (two views' rows are alive at once, ~90 of them at 1000x730; a
 /// cap of 4,096 cells held the same peak RSS and sent more tiles to the slower table).
 const DENSE_CELLS: usize = 1 << 14;
-/// Pixel codes of the dense sum beside the group ranks (< [`DENSE_GROUPS`]): no label, a
-/// mask in no group.
-const NO_LABEL: u8 = u8::MAX;
-const UNGROUPED: u8 = u8::MAX - 1;
+/// The pixel code of the dense sum beside the group ranks (< [`DENSE_GROUPS`]): a mask in
+/// no group.
+const UNGROUPED: u8 = u8::MAX;
 
 /// Step 2: every row's records, counting-sorted by Gaussian block into `sorted`; returns
 /// the `blocks + 1` bounds of the buckets.

@@ -896,12 +896,14 @@ pub(crate) struct ViewConsts {
     side_planes: [CullPlane; 4],
 }
 
-/// A linear function of the world position, a·p + b, with the magnitudes of the terms
-/// it sums (|a| and |b| bound them component-wise) for a rounding margin.
+/// A linear function of the world position, a·p + b, with the Euclidean norm of a and
+/// the magnitudes of the terms it sums (|a| and |b| bound them component-wise) for a
+/// rounding margin.
 #[derive(Debug, Clone, Copy)]
 struct CullPlane {
     a: [f64; 3],
     b: f64,
+    norm: f64,
     a_abs: [f64; 3],
     b_abs: f64,
 }
@@ -909,9 +911,11 @@ struct CullPlane {
 impl CullPlane {
     /// s·f·(camera axis `axis`) + k·(camera z): the camera axes are rows of R plus t.
     fn new(r: &[[f64; 3]; 3], t: &[f64; 3], [s, f]: [f64; 2], axis: usize, k: f64) -> Self {
+        let a: [f64; 3] = std::array::from_fn(|j| s * f * r[axis][j] + k * r[2][j]);
         CullPlane {
-            a: std::array::from_fn(|j| s * f * r[axis][j] + k * r[2][j]),
+            a,
             b: s * f * t[axis] + k * t[2],
+            norm: (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt(),
             a_abs: std::array::from_fn(|j| (f * r[axis][j]).abs() + (k * r[2][j]).abs()),
             b_abs: (f * t[axis]).abs() + (k * t[2]).abs(),
         }
@@ -922,8 +926,7 @@ impl CullPlane {
     #[inline(always)]
     fn max_over(&self, group: &CullGroup, extra: f64) -> (f64, f64) {
         let c = group.center;
-        let norm = (self.a[0] * self.a[0] + self.a[1] * self.a[1] + self.a[2] * self.a[2]).sqrt();
-        let reach = group.radius * norm;
+        let reach = group.radius * self.norm;
         let at_center = self.a[0] * c[0] + self.a[1] * c[1] + self.a[2] * c[2] + self.b;
         let magnitude = self.a_abs[0] * c[0].abs()
             + self.a_abs[1] * c[1].abs()
@@ -950,6 +953,7 @@ impl ViewConsts {
         let tan_y = tangent_range(cy, fy, h);
         let r = cam.rotation;
         let (tiles_x, tiles_y) = cam.tiles();
+        let grid = [(tiles_x * TILE) as f64, (tiles_y * TILE) as f64];
 
         // Pre-cull gain. With τ = the clamped x/z, y/z (|τx| <= Cx, |τy| <= Cy),
         // J = [[fx, 0, −fx τx], [0, fy, −fy τy]] / z, and Gershgorin on J Jᵀ gives
@@ -975,14 +979,20 @@ impl ViewConsts {
             zero_r0: r[0].map(|x| 0.0 * x),
             zero_r1: r[1].map(|x| 0.0 * x),
             tiles: [tiles_x, tiles_y],
-            grid: [(tiles_x * TILE) as f64, (tiles_y * TILE) as f64],
+            grid,
             cull_gain: jj * ww * (1.0 + 1e-6),
             width: cam.width,
             height: cam.height,
             campos: cam.center(),
             shade,
             depth_plane: CullPlane::new(&r, &cam.translation, [0.0, 0.0], 0, 1.0),
-            side_planes: side_planes(cam, GROUP_CULL_PIXELS),
+            side_planes: side_planes(
+                &r,
+                &cam.translation,
+                [fx, fy, cx, cy],
+                grid,
+                GROUP_CULL_PIXELS,
+            ),
         }
     }
 
@@ -1164,13 +1174,16 @@ impl ViewConsts {
     }
 }
 
-/// The four side tests of [`ViewConsts::group_culled`] with `pixels` in place of
-/// [`GROUP_CULL_PIXELS`] (the tests loosen it).
-fn side_planes(cam: &ViewCamera, pixels: f64) -> [CullPlane; 4] {
-    let [fx, fy, cx, cy] = cam.intrinsics;
-    let (tiles_x, tiles_y) = cam.tiles();
-    let (gw, gh) = ((tiles_x * TILE) as f64, (tiles_y * TILE) as f64);
-    let (r, t) = (&cam.rotation, &cam.translation);
+/// The four side tests of [`ViewConsts::group_culled`] for the camera (R, t, intrinsics)
+/// and tile grid `[gw, gh]` in pixels, with `pixels` in place of [`GROUP_CULL_PIXELS`]
+/// (the tests loosen it).
+fn side_planes(
+    r: &[[f64; 3]; 3],
+    t: &[f64; 3],
+    [fx, fy, cx, cy]: [f64; 4],
+    [gw, gh]: [f64; 2],
+    pixels: f64,
+) -> [CullPlane; 4] {
     [
         CullPlane::new(r, t, [1.0, fx], 0, cx + pixels),
         CullPlane::new(r, t, [-1.0, fx], 0, gw + pixels - cx),
@@ -1778,37 +1791,25 @@ mod tests {
     /// which Morton-ordered runs of slots are compact), one in 50 large.
     fn cloud(n: usize, seed: u64) -> Gaussians {
         let mut rng = Rng(seed);
-        let mut g = Gaussians::default();
         let mut pick = |lo: f64, hi: f64| rng.range(lo, hi) as f32;
-        let (means, log_scales, rotations, logits, dc): (Vec<_>, Vec<_>, Vec<_>, Vec<_>, Vec<_>) =
-            (0..n)
-                .map(|i| {
-                    let big = if i % 50 == 0 { 3.0 } else { 0.0 };
-                    (
-                        [pick(-12.0, 12.0), pick(-12.0, 12.0), pick(-12.0, 12.0)],
-                        [0; 3].map(|_| pick(-4.0, -2.0) + big),
-                        [0; 4].map(|_| pick(-1.0, 1.0)),
-                        pick(-6.0, 6.0),
-                        [0; 3].map(|_| pick(-2.0, 2.0)),
-                    )
-                })
-                .fold(
-                    Default::default(),
-                    |mut acc: (Vec<_>, Vec<_>, Vec<_>, Vec<_>, Vec<_>), x| {
-                        acc.0.push(x.0);
-                        acc.1.push(x.1);
-                        acc.2.push(x.2);
-                        acc.3.push(x.3);
-                        acc.4.push(x.4);
-                        acc
-                    },
-                );
-        g.means = means.into();
-        g.log_scales = log_scales.into();
-        g.rotations = rotations.into();
-        g.opacity_logits = logits.into();
-        g.sh_dc = dc.into();
-        g
+        let (mut means, mut log_scales, mut rotations, mut logits, mut dc) =
+            (vec![], vec![], vec![], vec![], vec![]);
+        for i in 0..n {
+            let big = if i % 50 == 0 { 3.0 } else { 0.0 };
+            means.push([0; 3].map(|_| pick(-12.0, 12.0)));
+            log_scales.push([0; 3].map(|_| pick(-4.0, -2.0) + big));
+            rotations.push([0; 4].map(|_| pick(-1.0, 1.0)));
+            logits.push(pick(-6.0, 6.0));
+            dc.push([0; 3].map(|_| pick(-2.0, 2.0)));
+        }
+        Gaussians {
+            means: means.into(),
+            log_scales: log_scales.into(),
+            rotations: rotations.into(),
+            opacity_logits: logits.into(),
+            sh_dc: dc.into(),
+            ..Default::default()
+        }
     }
 
     /// The group cull (`ViewConsts::group_culled`) on a densely covered scene: every
@@ -1852,11 +1853,15 @@ mod tests {
         }
         assert_eq!(mismatches(&g, &prep, &cams, |_| {}), Vec::<String>::new());
         let loose = mismatches(&g, &prep, &cams, |v| {
-            let (r2, t2) = (v.depth_plane.a, v.depth_plane.b);
-            for p in &mut v.side_planes {
-                p.a = std::array::from_fn(|j| p.a[j] - 100.0 * r2[j]);
-                p.b -= 100.0 * t2;
-            }
+            let ([fx, fy], [cx, cy]) = (v.focal, v.principal);
+            let pixels = GROUP_CULL_PIXELS - 100.0;
+            v.side_planes = side_planes(
+                &v.rotation,
+                &v.translation,
+                [fx, fy, cx, cy],
+                v.grid,
+                pixels,
+            );
         });
         assert!(!loose.is_empty());
     }
