@@ -1160,9 +1160,13 @@ struct TileScratch {
     lid: Vec<Line>,
     /// K of the lists.
     k: usize,
-    /// Per blend unit: the splats of the tile that reach it, in depth order (see
-    /// `blend_tile`).
+    /// Per blend unit of one row (4 lanes): the splats of the tile that reach it, in depth
+    /// order (see `blend_tile`).
     units: UnitLists,
+    /// The tile's list as 4 x 4 units (16 lanes) select from it, and the positions of the
+    /// entries one unit selected (see `blend_tile`).
+    rects: TileRects,
+    unit_positions: Vec<f32>,
     /// Per blend unit: its lists' ranks from this one on are padding in every lane (they
     /// were never written in this tile: the lists are not cleared between tiles).
     fill: Vec<u16>,
@@ -1503,9 +1507,9 @@ fn blend_tile_avx512<const TOPK: bool, const CUTOFF: bool>(
     blend_tile::<F32x16, TOPK, CUTOFF>(splats, list, rect, st);
 }
 
-/// One entry of a blend unit's list: a splat, as its position in the tile's list, and the
-/// unit's lanes inside its footprint (the columns of its rectangle, or of its row span
-/// where spans are solved; lane l in bit l).
+/// One entry of a blend unit's walk: a splat, as its position in the tile's list, and the
+/// unit's lanes inside its footprint (those of its rectangle, or of its row span where
+/// spans are solved; lane l in bit l).
 #[derive(Debug, Clone, Copy)]
 struct UnitEntry {
     at: u32,
@@ -1513,9 +1517,8 @@ struct UnitEntry {
 }
 
 /// The per-unit splat lists of one tile in one buffer: unit u's entries are
-/// `entries[u * stride..][..len[u]]`, where `stride` exceeds the tile's list length (a
-/// splat enters a unit at most once), so the slot after a unit's last entry is always its
-/// own and a write there that is not counted disturbs nothing.
+/// `entries[u * stride..][..len[u]]`, where `stride` is the tile's list length (a splat
+/// enters a unit at most once).
 #[derive(Debug, Default)]
 struct UnitLists {
     entries: Vec<UnitEntry>,
@@ -1526,7 +1529,7 @@ struct UnitLists {
 impl UnitLists {
     /// Empties `units` lists for a tile of `list_len` splats.
     fn reset(&mut self, units: usize, list_len: usize) {
-        self.stride = list_len + 1;
+        self.stride = list_len;
         let need = units * self.stride;
         if self.entries.len() < need {
             self.entries.resize(need, UnitEntry { at: 0, lanes: 0 });
@@ -1545,20 +1548,6 @@ impl UnitLists {
         }
     }
 
-    /// Appends (at, lanes) to `unit` if `lanes` is not empty, without a branch on it: the
-    /// entry is always written, into the slot after the unit's last entry, and counted
-    /// only if it has lanes. A `unit` beyond the tile's units is ignored.
-    #[inline(always)]
-    fn push_if_any(&mut self, unit: usize, at: u32, lanes: u32) {
-        let Some(len) = self.len.get_mut(unit) else {
-            return;
-        };
-        if let Some(slot) = self.entries.get_mut(unit * self.stride + *len) {
-            *slot = UnitEntry { at, lanes };
-            *len += usize::from(lanes != 0);
-        }
-    }
-
     fn get(&self, unit: usize) -> &[UnitEntry] {
         let len = self.len.get(unit).copied().unwrap_or(0);
         self.entries
@@ -1570,13 +1559,21 @@ impl UnitLists {
 /// Front-to-back blend of one tile's depth-sorted splats.
 ///
 /// The tile's pixels are cut into units of N pixels: [`UNIT_W`] adjacent columns of
-/// N / [`UNIT_W`] adjacent rows (4 x 4 with 16 lanes, 4 x 1 with 4). First every splat is
-/// appended to the list of each unit its footprint reaches, in depth order; then each unit
-/// walks its own list with its whole state (transmittance, colour, depth and weight sums,
-/// stopped lanes, the K-th weight) in registers, and stops as soon as every pixel of it
-/// has stopped. Walking splats per unit rather than units per splat keeps that state out
-/// of memory between blends, so the only chain from one splat to the next is T's few
-/// operations and the exponentials of later splats overlap the current one.
+/// N / [`UNIT_W`] adjacent rows (4 x 4 with 16 lanes, 4 x 1 with 4). Each unit walks the
+/// splats that reach it in depth order with its whole state (transmittance, colour, depth
+/// and weight sums, stopped lanes, the K-th weight) in registers, and stops as soon as
+/// every pixel of it has stopped. Walking splats per unit rather than units per splat
+/// keeps that state out of memory between blends, so the only chain from one splat to the
+/// next is T's few operations and the exponentials of later splats overlap the current
+/// one.
+///
+/// How a unit finds its splats depends on its shape. A 4 x 4 unit selects them from the
+/// tile's list just before its walk, testing 16 entries' rectangles at once and packing
+/// the positions of those that reach it ([`TileRects`]): no branch per entry, where
+/// appending every splat to the list of each unit it reaches took a third of the time of
+/// the walks on `fuse bench`'s scene. A unit of one row gets its list from
+/// [`distribute_rows`], which cuts each splat to its ellipse's span in every row: with
+/// 4-lane compares, selecting would cost more than it saves.
 #[inline(always)]
 fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
@@ -1585,13 +1582,17 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     st: &mut TileScratch,
 ) {
     let unit_h = V::N / UNIT_W;
-    st.fill.resize(TILE_PIXELS / V::N, 0);
-    let units = &mut st.units;
-    units.reset(TILE_PIXELS / V::N, list.len());
+    let n_units = TILE_PIXELS / V::N;
+    st.fill.resize(n_units, 0);
     // Only top-K lists name their splats (by position; the ids come with the output).
     let ids = if TOPK { Some(&mut st.list_ids) } else { None };
-    distribute::<V>(splats, list, [x0, x1, y0, y1], units, ids);
-    let units = &st.units;
+    if unit_h > 1 {
+        st.rects.build(splats, list, [x0, x1, y0, y1], ids);
+    } else {
+        st.units.reset(n_units, list.len());
+        distribute_rows(splats, list, [x0, x1, y0, y1], &mut st.units, ids);
+    }
+    let (units, rects, selected) = (&st.units, &st.rects, &mut st.unit_positions);
     let k = st.k;
     let mut out = UnitOut {
         t: pixels_mut(&mut st.t),
@@ -1606,50 +1607,171 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         k,
         counts: &mut st.counts,
     };
-    for u in 0..TILE_PIXELS / V::N {
-        let unit = units.get(u);
+    for u in 0..n_units {
         let (r0, c0) = ((u / UNITS_PER_ROW) * unit_h, (u % UNITS_PER_ROW) * UNIT_W);
         if y0 + r0 >= y1 || x0 + c0 >= x1 {
             continue;
         }
         // Lanes inside the image (the tiles at the right and bottom edges may be smaller).
         let (cols, rows) = ((x1 - x0 - c0).min(UNIT_W), (y1 - y0 - r0).min(unit_h));
-        let valid = bit_range(0, cols - 1) * row_starts(0, rows - 1);
-        blend_unit::<V, TOPK, CUTOFF>(
-            splats,
-            list,
-            unit,
-            [x0 + c0, y0 + r0],
-            V::from_bits(valid),
-            [u, r0 * TILE + c0],
-            &mut out,
-        );
+        let valid = V::from_bits(bit_range(0, cols - 1) * row_starts(0, rows - 1));
+        let place = [x0 + c0, y0 + r0];
+        let at = [u, r0 * TILE + c0];
+        if unit_h > 1 {
+            let n = rects.select::<V>(u, selected);
+            let entries = selected[..n].iter().map(|p| {
+                let at = p.to_bits();
+                UnitEntry {
+                    at,
+                    lanes: rects.lanes(at, u),
+                }
+            });
+            blend_unit::<V, TOPK, CUTOFF>(splats, list, entries, place, valid, at, &mut out);
+        } else {
+            let entries = units.get(u).iter().copied();
+            blend_unit::<V, TOPK, CUTOFF>(splats, list, entries, place, valid, at, &mut out);
+        }
     }
 }
 
-/// Appends each splat of the tile's list to the lists of the units its footprint reaches,
-/// with the unit's lanes that lie in the footprint: for units of one row (4 lanes), the
-/// row's span of the α >= 1/255 ellipse (the whole rectangle row where the spans cannot be
-/// trusted), so that units the ellipse misses get no entry; for taller units, the
-/// splat's rectangle (a span per row cost more to solve than the corner units it saves,
-/// measured). The pixels of an entry's lanes outside the ellipse fail the alpha test.
-/// Entries name their splat by its position in the list; `ids`, if given, receives the
-/// Gaussian id of every position.
+/// A tile's list as the 4 x 4 units select from it ([`TileRects::select`]): per entry, the
+/// units its rectangle (clipped to the tile) reaches, as bits (unit u in bit u) in an f32
+/// bit pattern, so that one integer test checks 16 entries against a unit; its position,
+/// also as an f32 bit pattern (both only moved and tested, never computed with); and its
+/// rectangle's columns and rows as bits over the tile's 16 (whose nibbles are a unit's
+/// lanes). Padded to a multiple of 16 with entries that reach no unit.
+#[derive(Debug, Default)]
+struct TileRects {
+    units: Vec<f32>,
+    positions: Vec<f32>,
+    /// Column bits in the low 16 bits, row bits in the high 16.
+    cols_rows: Vec<u32>,
+}
+
+impl TileRects {
+    /// The rectangles of the tile `[x0, x1) x [y0, y1)`'s `list`; `ids`, if given, receives
+    /// the Gaussian id of every position of the list.
+    fn build(
+        &mut self,
+        splats: &[Splat],
+        list: &[RowEntry],
+        [x0, x1, y0, y1]: [usize; 4],
+        mut ids: Option<&mut Vec<u32>>,
+    ) {
+        self.units.clear();
+        self.positions.clear();
+        self.cols_rows.clear();
+        if let Some(ids) = ids.as_deref_mut() {
+            ids.clear();
+        }
+        for (i, &(e, rect)) in list.iter().enumerate() {
+            // The list's splats are scattered over the view's (depth order, not screen
+            // order): ask for one a few entries ahead, for the id below and the walks.
+            if let Some(ahead) = list
+                .get(i + PREFETCH_AHEAD)
+                .and_then(|&(a, _)| splats.get(a as usize))
+            {
+                prefetch(ahead);
+            }
+            if let Some(ids) = ids.as_deref_mut() {
+                ids.push(splats.get(e as usize).map_or(NO_GAUSSIAN, |sp| sp.id));
+            }
+            let [rx0, rx1, ry0, ry1] = rect.map(usize::from);
+            let (cx0, cx1) = (rx0.max(x0), rx1.min(x1 - 1));
+            let (cy0, cy1) = (ry0.max(y0), ry1.min(y1 - 1));
+            if cx0 > cx1 || cy0 > cy1 {
+                self.push_nowhere();
+            } else {
+                self.push([cx0 - x0, cx1 - x0, cy0 - y0, cy1 - y0]);
+            }
+        }
+        while !self.units.len().is_multiple_of(16) {
+            self.push_nowhere();
+        }
+    }
+
+    /// Appends an entry with the tile-local rectangle `[c0, c1, r0, r1]` (inclusive, inside
+    /// the tile).
+    fn push(&mut self, [c0, c1, r0, r1]: [usize; 4]) {
+        let (cols, rows) = (bit_range(c0, c1), bit_range(r0, r1));
+        let unit_rows = bit_range(r0 / UNIT_W, r1 / UNIT_W);
+        let units = bit_range(c0 / UNIT_W, c1 / UNIT_W) * spread_rows(unit_rows);
+        self.push_bits(units, cols | rows << 16);
+    }
+
+    /// Appends an entry that reaches no unit.
+    fn push_nowhere(&mut self) {
+        self.push_bits(0, 0);
+    }
+
+    fn push_bits(&mut self, units: u32, cols_rows: u32) {
+        // A list's positions are u32 (its splats are).
+        let at = self.units.len() as u32;
+        self.units.push(f32::from_bits(units));
+        self.positions.push(f32::from_bits(at));
+        self.cols_rows.push(cols_rows);
+    }
+
+    /// The positions (as f32 bit patterns) of the entries that reach unit `u` (of 4 x 4
+    /// pixels; u = 4 · unit row + unit column) in list order, tested [`Lanes::N`] at a
+    /// time and packed without a branch per entry into `out`; returns their count.
+    #[inline(always)]
+    fn select<V: Lanes>(&self, u: usize, out: &mut Vec<f32>) -> usize {
+        // Room for a whole vector past the last entry.
+        out.resize(self.units.len() + V::N, 0.0);
+        let mut n = 0;
+        let chunks = self
+            .units
+            .chunks_exact(V::N)
+            .zip(self.positions.chunks_exact(V::N));
+        for (units, at) in chunks {
+            let reached = V::load(units).any_bits(1 << u);
+            n += V::load(at).compress_store(reached, &mut out[n..]);
+        }
+        n
+    }
+
+    /// The lanes of unit `u` inside the rectangle of the entry at `at` (lane l = row
+    /// l / 4, column l mod 4 of the unit, in bit l).
+    #[inline(always)]
+    fn lanes(&self, at: u32, u: usize) -> u32 {
+        let (ur, uc) = (u / UNITS_PER_ROW, u % UNITS_PER_ROW);
+        let Some(&cr) = self.cols_rows.get(at as usize) else {
+            return 0;
+        };
+        let c = cr >> (uc * UNIT_W) & 0xF;
+        let r = cr >> (16 + ur * UNIT_W) & 0xF;
+        c * spread_rows(r)
+    }
+}
+
+/// Four row bits (rows 0-3 of a unit) spread to bits 0, 4, 8 and 12: times a row's
+/// column bits (< 2^UNIT_W) it repeats them in each of those rows.
 #[inline(always)]
-fn distribute<V: Lanes>(
+fn spread_rows(r: u32) -> u32 {
+    (r & 1) | ((r & 2) << 3) | ((r & 4) << 6) | ((r & 8) << 9)
+}
+
+/// Appends each splat of the tile's list to the lists of the units of one row (4 lanes)
+/// its footprint reaches, with the unit's lanes in the row's span of the α >= 1/255
+/// ellipse (the whole rectangle row where the spans cannot be trusted), so that units
+/// the ellipse misses get no entry. The pixels of an entry's lanes outside the ellipse
+/// fail the alpha test. Entries name their splat by its position in the list; `ids`, if
+/// given, receives the Gaussian id of every position.
+#[inline(always)]
+fn distribute_rows(
     splats: &[Splat],
     list: &[RowEntry],
     [x0, x1, y0, y1]: [usize; 4],
     units: &mut UnitLists,
     mut ids: Option<&mut Vec<u32>>,
 ) {
-    let unit_h = V::N / UNIT_W;
     if let Some(ids) = ids.as_deref_mut() {
         ids.clear();
     }
     for (i, &(e, rect)) in list.iter().enumerate() {
         // The list's splats are scattered over the view's (depth order, not screen order):
-        // ask for one a few entries ahead, for the units' walks (and the spans below).
+        // ask for one a few entries ahead, for the spans below and the units' walks.
         if let Some(ahead) = list
             .get(i + PREFETCH_AHEAD)
             .and_then(|&(a, _)| splats.get(a as usize))
@@ -1667,14 +1789,6 @@ fn distribute<V: Lanes>(
         if cx0 > cx1 || cy0 > cy1 {
             continue;
         }
-        if unit_h > 1 {
-            let rect = [cx0 - x0, cx1 - x0, cy0 - y0, cy1 - y0];
-            if !push_small_rectangle(units, at, rect) {
-                push_rectangle(units, unit_h, at, rect);
-            }
-            continue;
-        }
-        // Units of one row: the row's span of the ellipse.
         let Some(sp) = splats.get(e as usize) else {
             continue;
         };
@@ -1694,55 +1808,6 @@ fn distribute<V: Lanes>(
                 let lanes = bit_range(first, last);
                 units.push((py - y0) * UNITS_PER_ROW + uc, UnitEntry { at, lanes });
             }
-        }
-    }
-}
-
-/// [`push_rectangle`] for 4 x 4 units without data-dependent branches, for a rectangle
-/// that fits in the 2 x 2 units from the one of its top-left pixel (most splats of a dense
-/// scene: the loops over unit rows and columns mispredicted their short, varying trip
-/// counts); returns false, having pushed nothing, for a larger one.
-#[inline(always)]
-fn push_small_rectangle(units: &mut UnitLists, at: u32, [c0, c1, r0, r1]: [usize; 4]) -> bool {
-    let (ur0, uc0) = (r0 / UNIT_W, c0 / UNIT_W);
-    if r1 >= (ur0 + 2) * UNIT_W || c1 >= (uc0 + 2) * UNIT_W {
-        return false;
-    }
-    // The rectangle's columns and rows as bits over the whole tile (c1, r1 < 16).
-    let cols = bit_range(c0, c1);
-    let rows = bit_range(r0, r1);
-    for (dr, dc) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
-        let (ur, uc) = (ur0 + dr, uc0 + dc);
-        // 4 column bits of unit column uc; 4 row bits of unit row ur spread to bits 0, 4,
-        // 8, 12, so that their product repeats the columns in each of those rows. Beyond
-        // the tile (ur or uc = 4) both are 0.
-        let c = (cols >> (UNIT_W * uc)) & 0xF;
-        let r = (rows >> (UNIT_W * ur)) & 0xF;
-        let spread = (r & 1) | ((r & 2) << 3) | ((r & 4) << 6) | ((r & 8) << 9);
-        units.push_if_any(ur * UNITS_PER_ROW + uc, at, c * spread);
-    }
-    true
-}
-
-/// Appends the splat at `at` in the tile's list to every unit of height `unit_h` that the tile-local rectangle
-/// `[c0, c1, r0, r1]` (inclusive) reaches, with the unit's lanes inside it.
-#[inline(always)]
-fn push_rectangle(units: &mut UnitLists, unit_h: usize, at: u32, [c0, c1, r0, r1]: [usize; 4]) {
-    for ur in r0 / unit_h..r1 / unit_h + 1 {
-        let top = ur * unit_h;
-        let (j0, j1) = (r0.max(top) - top, r1.min(top + unit_h - 1) - top);
-        let rows = row_starts(j0, j1);
-        for uc in c0 / UNIT_W..c1 / UNIT_W + 1 {
-            let left = uc * UNIT_W;
-            let (first, last) = (c0.max(left) - left, c1.min(left + UNIT_W - 1) - left);
-            let cols = bit_range(first, last);
-            units.push(
-                ur * UNITS_PER_ROW + uc,
-                UnitEntry {
-                    at,
-                    lanes: cols * rows,
-                },
-            );
         }
     }
 }
@@ -1789,8 +1854,9 @@ fn row_span(sp: &Splat, py: usize, cx0: usize, cx1: usize) -> Option<(usize, usi
 /// 1/255 even at opacity 1 (opacities are sigmoids, <= 1).
 const POWER_FLOOR: f32 = -40.0;
 
-/// How many list entries ahead [`distribute`] prefetches a splat.
-const PREFETCH_AHEAD: usize = 6;
+/// How many list entries ahead [`TileRects::build`] and [`distribute_rows`] prefetch a
+/// splat (6 left the id reads of the first waiting on memory; 16 and 32 measured alike).
+const PREFETCH_AHEAD: usize = 16;
 
 /// Extra width, in pixels, of each per-row span beyond the solved ellipse bounds: far above
 /// the f32 rounding of those bounds (the exponent margin of `Splat::two_a_tau` adds more).
@@ -1826,7 +1892,8 @@ struct UnitState<V: Lanes> {
 }
 
 /// One unit (number `unit` of the tile, whose top-left pixel is image pixel (`px0`, `py0`)
-/// and tile pixel `at`) over its splat list, front to back: INRIA's per-pixel step on all
+/// and tile pixel `at`) over the `entries` that reach it, front to back (taken [`BATCH`]
+/// at a time, and no more once every lane has stopped): INRIA's per-pixel step on all
 /// lanes at once (lanes outside an entry's footprint masked off). With `TOPK`, pixels
 /// whose weight beats their list's K-th enter their top-K list; with `CUTOFF` (lists only)
 /// a pixel also stops once its list is final. Writes T, the sums and the lists into
@@ -1835,7 +1902,7 @@ struct UnitState<V: Lanes> {
 fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     splats: &[Splat],
     list: &[RowEntry],
-    entries: &[UnitEntry],
+    mut entries: impl Iterator<Item = UnitEntry>,
     [px0, py0]: [usize; 2],
     valid: V::Mask,
     [unit, at]: [usize; 2],
@@ -1871,7 +1938,17 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     // of those exp chains.
     let mut alpha = [zero; BATCH];
     let mut reach = [V::from_bits(0); BATCH];
-    'walk: for batch in entries.chunks(BATCH) {
+    let mut pending = [UnitEntry { at: 0, lanes: 0 }; BATCH];
+    'walk: loop {
+        let mut len = 0;
+        for slot in &mut pending {
+            let Some(e) = entries.next() else {
+                break;
+            };
+            *slot = e;
+            len += 1;
+        }
+        let batch = &pending[..len];
         for ((e, a), m) in batch.iter().zip(&mut alpha).zip(&mut reach) {
             let lanes = V::from_bits(e.lanes) & !s.done;
             *m = lanes;
@@ -1937,6 +2014,9 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
             if V::bits(s.done) == all {
                 break 'walk;
             }
+        }
+        if len < BATCH {
+            break;
         }
     }
     if let Some(f) = out.fill.get_mut(unit) {
@@ -2135,8 +2215,8 @@ fn write_tile(ctx: &Ctx<'_>, row: &mut RowOut<'_>, [x0, x1, y0, y1]: [usize; 4],
 #[cfg(test)]
 mod tests {
     use super::{
-        bucket_by_row, depth_key, key_position, push_rectangle, push_small_rectangle,
-        sort_by_depth, ChunkRecords, DepthRecord, RowEntry, UnitLists, TILE, TILE_PIXELS, UNIT_W,
+        bucket_by_row, depth_key, f32x4, key_position, sort_by_depth, ChunkRecords, DepthRecord,
+        RowEntry, TileRects, TILE, TILE_PIXELS, UNIT_W,
     };
 
     /// A small LCG: deterministic test values below `m`.
@@ -2304,74 +2384,93 @@ mod tests {
         assert_eq!((start, entries.len()), (vec![0; tiles_y + 1], 0));
     }
 
-    /// Every unit's (position, lanes) entries, in order.
-    fn unit_entries(units: &UnitLists, count: usize) -> Vec<Vec<(u32, u32)>> {
-        (0..count)
-            .map(|u| units.get(u).iter().map(|e| (e.at, e.lanes)).collect())
+    /// Every 4 x 4 unit's scanned (position, lanes) entries of the tile `rect`'s `list`.
+    fn scanned(list: &[RowEntry], rect: [usize; 4]) -> Vec<Vec<(u32, u32)>> {
+        let mut rects = TileRects::default();
+        rects.build(&[], list, rect, None);
+        let mut selected = Vec::new();
+        (0..TILE_PIXELS / 16)
+            .map(|u| {
+                let n = rects.select::<f32x4>(u, &mut selected);
+                let entries = selected[..n].iter().map(|p| (p.to_bits(), 0));
+                entries.map(|(at, _)| (at, rects.lanes(at, u))).collect()
+            })
+            .collect()
+    }
+
+    /// The per-pixel reference of [`scanned`]: lane l of unit u is tile pixel (column 4 (u
+    /// mod 4) + l mod 4, row 4 (u div 4) + l div 4), inside an entry where its image pixel
+    /// lies in the entry's rectangle and in the tile.
+    fn reference(list: &[RowEntry], [x0, x1, y0, y1]: [usize; 4]) -> Vec<Vec<(u32, u32)>> {
+        (0..TILE_PIXELS / 16)
+            .map(|u| {
+                let mut want = Vec::new();
+                for (i, (_, [rx0, rx1, ry0, ry1])) in list.iter().enumerate() {
+                    let mut lanes = 0;
+                    for l in 0..16 {
+                        let x = x0 + UNIT_W * (u % 4) + l % UNIT_W;
+                        let y = y0 + UNIT_W * (u / 4) + l / UNIT_W;
+                        let in_rect = (usize::from(*rx0)..=usize::from(*rx1)).contains(&x)
+                            && (usize::from(*ry0)..=usize::from(*ry1)).contains(&y);
+                        if in_rect && x < x1 && y < y1 {
+                            lanes |= 1 << l;
+                        }
+                    }
+                    if lanes != 0 {
+                        want.push((i as u32, lanes));
+                    }
+                }
+                want
+            })
             .collect()
     }
 
     #[test]
-    fn small_rectangles_reach_the_units_and_lanes_of_the_loop_version() {
-        // Every rectangle of a tile (4 x 4 units), pushed after an earlier splat so that
-        // the uncounted writes of empty units must not disturb existing entries.
-        let count = TILE_PIXELS / 16;
-        let (mut fast, mut slow) = (UnitLists::default(), UnitLists::default());
-        let mut small = 0;
+    fn units_scan_every_rectangle_of_a_tile_with_exactly_its_lanes() {
+        // One list holding every rectangle inside the tile at (16, 32), in a 16 x 16 tile
+        // and in an edge tile cut to 13 x 6 pixels.
+        let (x0, y0) = (16, 32);
+        let mut list = Vec::new();
         for r0 in 0..TILE {
             for r1 in r0..TILE {
                 for c0 in 0..TILE {
                     for c1 in c0..TILE {
-                        fast.reset(count, 2);
-                        slow.reset(count, 2);
-                        let first = [3, 9, 2, 5];
-                        push_rectangle(&mut fast, UNIT_W, 7, first);
-                        push_rectangle(&mut slow, UNIT_W, 7, first);
-                        let rect = [c0, c1, r0, r1];
-                        if push_small_rectangle(&mut fast, 8, rect) {
-                            small += 1;
-                        } else {
-                            // Larger than 2 x 2 units from its top-left one: refused, and
-                            // nothing pushed.
-                            assert!(r1 / UNIT_W > r0 / UNIT_W + 1 || c1 / UNIT_W > c0 / UNIT_W + 1);
-                            push_rectangle(&mut fast, UNIT_W, 8, rect);
-                        }
-                        push_rectangle(&mut slow, UNIT_W, 8, rect);
-                        assert_eq!(
-                            unit_entries(&fast, count),
-                            unit_entries(&slow, count),
-                            "{rect:?}"
-                        );
+                        let r = [x0 + c0, x0 + c1, y0 + r0, y0 + r1].map(|v| v as u16);
+                        list.push((list.len() as u32, r));
                     }
                 }
             }
         }
-        // 2 x 2 units hold every rectangle whose rows and columns each span <= 2 units.
-        let spans_within_two = (0..TILE)
-            .flat_map(|a| (a..TILE).map(move |b| (a, b)))
-            .filter(|(a, b)| b / UNIT_W <= a / UNIT_W + 1)
-            .count();
-        assert_eq!(small, spans_within_two * spans_within_two);
+        assert_eq!(list.len(), 136 * 136);
+        for rect in [[x0, x0 + TILE, y0, y0 + TILE], [x0, x0 + 13, y0, y0 + 6]] {
+            let got = scanned(&list, rect);
+            assert_eq!(got, reference(&list, rect), "{rect:?}");
+            // Every unit meets rectangles (the edge tile's units past column 13 or row 6 meet
+            // only lanes outside the image, so none).
+            let hit_units = got.iter().filter(|e| !e.is_empty()).count();
+            assert_eq!(hit_units, if rect[1] == x0 + TILE { 16 } else { 8 });
+        }
     }
 
     #[test]
-    fn a_rectangle_reaches_exactly_its_pixels() {
-        // The loop version against a per-pixel reference: lane l of unit u is tile pixel
-        // (column 4 (u mod 4) + l mod 4, row 4 (u div 4) + l div 4).
-        let count = TILE_PIXELS / 16;
-        let mut units = UnitLists::default();
-        for rect in [[0, 15, 0, 15], [3, 4, 7, 12], [5, 5, 0, 0], [1, 14, 2, 3]] {
-            units.reset(count, 1);
-            push_rectangle(&mut units, UNIT_W, 1, rect);
-            let [c0, c1, r0, r1] = rect;
-            for u in 0..count {
-                let lanes = units.get(u).first().map_or(0, |e| e.lanes);
-                for l in 0..16 {
-                    let col = UNIT_W * (u % 4) + l % UNIT_W;
-                    let row = UNIT_W * (u / 4) + l / UNIT_W;
-                    let inside = (c0..=c1).contains(&col) && (r0..=r1).contains(&row);
-                    assert_eq!(lanes >> l & 1 == 1, inside, "{rect:?} unit {u} lane {l}");
-                }
+    fn units_scan_random_lists_with_rectangles_reaching_beyond_the_tile() {
+        // Rectangles of the tile row's splats reach past the tile's sides (and, where the
+        // row is the image's last, past its bottom edge); some miss the tile's columns.
+        let mut next = lcg(11);
+        for len in [1, 15, 16, 17, 100, 333] {
+            let list: Vec<RowEntry> = (0..len)
+                .map(|i| {
+                    let (c0, r0) = (next(80) as u16, 32 + next(20) as u16);
+                    let rect = [c0, c0 + next(30) as u16, r0, r0 + next(12) as u16];
+                    (i, rect)
+                })
+                .collect();
+            for rect in [[32, 48, 32, 48], [48, 61, 40, 47]] {
+                assert_eq!(
+                    scanned(&list, rect),
+                    reference(&list, rect),
+                    "{len} {rect:?}"
+                );
             }
         }
     }

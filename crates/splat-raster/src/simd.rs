@@ -64,6 +64,12 @@ pub(crate) trait Lanes:
     fn unit_rows() -> Self {
         Self::load(&UNIT_CENTRES[1])
     }
+    /// Writes the lanes of `m`, in lane order, to the start of `dst`, and fills the rest of
+    /// its first N values with unspecified ones (panics if it holds fewer); returns how
+    /// many lanes `m` has.
+    fn compress_store(self, m: Self::Mask, dst: &mut [f32]) -> usize;
+    /// The lanes whose bit pattern has any bit of `bits` set.
+    fn any_bits(self, bits: u32) -> Self::Mask;
     /// The mask as bits, lane l in bit l.
     fn bits(m: Self::Mask) -> u32;
     /// The mask with lane l set where bit l of `bits` is (bits from N on are ignored).
@@ -182,6 +188,22 @@ impl Lanes for f32x4 {
     #[inline(always)]
     fn min_c(self, c: f32) -> Self {
         f32x4::min(self, f32x4::splat(c))
+    }
+    #[inline(always)]
+    fn compress_store(self, m: Self, dst: &mut [f32]) -> usize {
+        let (dst, bits) = (&mut dst[..4], Self::bits(m));
+        // Every lane is written; the count only moves past the lanes of m.
+        let mut n = 0;
+        for (l, v) in self.to_array().into_iter().enumerate() {
+            dst[n] = v;
+            n += (bits >> l & 1) as usize;
+        }
+        n
+    }
+    #[inline(always)]
+    fn any_bits(self, bits: u32) -> Self {
+        let hit = self.to_array().map(|v| v.to_bits() & bits != 0);
+        Self::from_bits(hit.iter().rev().fold(0, |m, &h| m << 1 | u32::from(h)))
     }
     #[inline(always)]
     fn bits(m: Self) -> u32 {
@@ -412,6 +434,25 @@ pub(crate) mod avx512 {
             y * scale
         }
         #[inline(always)]
+        fn compress_store(self, m: M16, dst: &mut [f32]) -> usize {
+            let dst = &mut dst[..16];
+            // The register form and a plain store: the memory form of vcompressps is
+            // microcoded on some CPUs (Zen 4), tens of times slower.
+            // SAFETY: 16 writable values (checked above); the feature, see the module doc.
+            unsafe {
+                let packed = _mm512_maskz_compress_ps(m.0, self.0);
+                _mm512_storeu_ps(dst.as_mut_ptr(), packed);
+            }
+            m.0.count_ones() as usize
+        }
+        #[inline(always)]
+        fn any_bits(self, bits: u32) -> M16 {
+            // SAFETY: see the module doc.
+            M16(unsafe {
+                _mm512_test_epi32_mask(_mm512_castps_si512(self.0), _mm512_set1_epi32(bits as i32))
+            })
+        }
+        #[inline(always)]
         fn bits(m: M16) -> u32 {
             u32::from(m.0)
         }
@@ -524,6 +565,36 @@ mod tests {
         }
         for bits in [0u32, 1, 0x8000, 0xFFFF, 0x5A5A, 0x1234] {
             assert_eq!(F32x16::bits(F32x16::from_bits(bits)), bits);
+        }
+        // Packing and bit tests against the portable lanes, four at a time.
+        let patterns: Vec<f32> = (0..16u32)
+            .map(|l| f32::from_bits(l * 0x0101_0011))
+            .collect();
+        for mask in [0u32, 1, 0x8000, 0xFFFF, 0x5A5A, 0x1234, 0x0F0F] {
+            let mut wide = [f32::NAN; 16];
+            let n = F32x16::load(&xs[..16]).compress_store(F32x16::from_bits(mask), &mut wide);
+            let (mut narrow, mut m) = ([f32::NAN; 20], 0);
+            for q in 0..4 {
+                let lanes = f32x4::load(&xs[4 * q..]);
+                m += lanes.compress_store(f32x4::from_bits(mask >> (4 * q)), &mut narrow[m..]);
+            }
+            assert_eq!(n, mask.count_ones() as usize);
+            assert_eq!(
+                (n, wide[..n].to_vec()),
+                (m, narrow[..m].to_vec()),
+                "{mask:#x}"
+            );
+        }
+        for bit in [1u32, 0x10, 0x100, 0x8000, 0x1_0000, 0x8000_0000] {
+            let wide = F32x16::bits(F32x16::load(&patterns).any_bits(bit));
+            let narrow = (0..4).fold(0, |acc, q| {
+                let m = f32x4::bits(f32x4::load(&patterns[4 * q..]).any_bits(bit));
+                acc | m << (4 * q)
+            });
+            let want = (0..16).fold(0, |acc, l| {
+                acc | u32::from(patterns[l].to_bits() & bit != 0) << l
+            });
+            assert_eq!((wide, narrow), (want, want), "{bit:#x}");
         }
         let (mut c, mut r) = ([0.0f32; 16], [0.0f32; 16]);
         F32x16::unit_columns().store(&mut c);
