@@ -1432,31 +1432,27 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
             ) else {
                 continue;
             };
-            // Rank-major (rank r of the unit's N pixels adjacent) to pixel-major; the
-            // scratch holds positions in the tile's list, the output Gaussian ids.
-            for (r, (rw, rid)) in sw.chunks_exact(N).zip(sid.chunks_exact(N)).enumerate() {
-                for lane in 0..run_len {
-                    let o = (run_start + lane) * k + r;
-                    let (w, at) = (rw[lane0 + lane], rid[lane0 + lane].to_bits());
-                    if let (Some(dw), Some(did)) = (dw.get_mut(o), did.get_mut(o)) {
-                        *dw = w;
-                        *did = st.list_ids.get(at as usize).copied().unwrap_or(NO_GAUSSIAN);
-                    }
-                    if let Some(d) = dat.as_deref_mut().and_then(|d| d.get_mut(o)) {
-                        *d = at;
-                    }
-                }
-            }
+            // Rank-major (rank r of the unit's N pixels adjacent) to pixel-major, one
+            // pixel's K slots at a time (ranks from the fill on as padding); the scratch
+            // holds positions in the tile's list, the output Gaussian ids.
             for lane in 0..run_len {
-                let pad = (run_start + lane) * k + fill..(run_start + lane + 1) * k;
-                if let Some(w) = dw.get_mut(pad.clone()) {
-                    w.fill(0.0);
-                }
-                if let Some(id) = did.get_mut(pad.clone()) {
-                    id.fill(NO_GAUSSIAN);
-                }
-                if let Some(at) = dat.as_deref_mut().and_then(|d| d.get_mut(pad)) {
-                    at.fill(NO_GAUSSIAN);
+                let p = (run_start + lane) * k;
+                let (Some(pw), Some(pid)) = (dw.get_mut(p..p + k), did.get_mut(p..p + k)) else {
+                    continue;
+                };
+                let mut pat = dat.as_deref_mut().and_then(|d| d.get_mut(p..p + k));
+                for (r, (w_out, id_out)) in pw.iter_mut().zip(pid.iter_mut()).enumerate() {
+                    // Past the fill, `sw` and `sid` end: padding.
+                    let src = r * N + lane0 + lane;
+                    let (w, at) = match (sw.get(src), sid.get(src)) {
+                        (Some(&w), Some(&at)) => (w, at.to_bits()),
+                        _ => (0.0, NO_GAUSSIAN),
+                    };
+                    *w_out = w;
+                    *id_out = st.list_ids.get(at as usize).copied().unwrap_or(NO_GAUSSIAN);
+                    if let Some(a) = pat.as_deref_mut().and_then(|pa| pa.get_mut(r)) {
+                        *a = at;
+                    }
                 }
             }
         }
