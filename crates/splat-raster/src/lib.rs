@@ -62,11 +62,13 @@
 //! * **Blend loop.** A tile is cut into units of N pixels: 4 adjacent pixels of one row
 //!   with 4 lanes, a 4 x 4 block with 16 (most splats of a dense scene cover a few pixels:
 //!   a block wastes fewer lanes on them than a 16-pixel row, e.g. a 3 x 3 splat is one
-//!   block entry instead of three mostly empty rows). Its depth-ordered splats are first
-//!   appended to the lists of the units they reach (those of the splat's rectangle,
-//!   without data-dependent branches when it fits in 2 x 2 units; with 4 lanes only those
-//!   of each row's span), then each unit walks its own list with its whole state (T, the sums,
-//!   stopped lanes, the K-th weight) in registers and stops once all its pixels have, so
+//!   block entry instead of three mostly empty rows). A 4 x 4 unit selects the tile's
+//!   depth-ordered splats whose rectangles reach it just before its walk (one integer bit
+//!   test per 16 entries, the positions packed by a compress: no branch per entry and no
+//!   per-unit list kept for the tile); with 4 lanes each splat is first appended to the
+//!   lists of the units its ellipse's span reaches in each row. Each unit then walks its
+//!   splats with its whole state (T, the sums, stopped lanes, the K-th weight) in
+//!   registers and stops once all its pixels have, so
 //!   nothing but T's few operations chains one splat to the next. The α of a batch of 8
 //!   entries is computed before they are composited, so their exp chains overlap. Powers
 //!   are clamped to [−40, 0] before exp, which changes no result: below −40 no α reaches

@@ -141,7 +141,7 @@ fn may_be_drawn(var_max: f32) -> bool {
     (var_max >= 0.0) | var_max.is_nan()
 }
 
-/// Checks what [`prepare`] (and so `Rasterizer::new`) requires of the Gaussians, without
+/// Checks what `prepare` (and so `Rasterizer::new`) requires of the Gaussians, without
 /// preparing anything: consistent lengths, SH degree <= 3, finite means, log-scales,
 /// rotations and SH, no zero quaternion, no NaN opacity logit (±inf is allowed).
 pub fn check_gaussians(g: &Gaussians) -> Result<()> {
