@@ -1652,35 +1652,23 @@ impl TileRects {
         splats: &[Splat],
         list: &[RowEntry],
         [x0, x1, y0, y1]: [usize; 4],
-        mut ids: Option<&mut Vec<u32>>,
+        ids: Option<&mut Vec<u32>>,
     ) {
         self.units.clear();
         self.positions.clear();
         self.cols_rows.clear();
-        if let Some(ids) = ids.as_deref_mut() {
-            ids.clear();
-        }
-        for (i, &(e, rect)) in list.iter().enumerate() {
-            // The list's splats are scattered over the view's (depth order, not screen
-            // order): ask for one a few entries ahead, for the id below and the walks.
-            if let Some(ahead) = list
-                .get(i + PREFETCH_AHEAD)
-                .and_then(|&(a, _)| splats.get(a as usize))
-            {
-                prefetch(ahead);
-            }
-            if let Some(ids) = ids.as_deref_mut() {
-                ids.push(splats.get(e as usize).map_or(NO_GAUSSIAN, |sp| sp.id));
-            }
-            let [rx0, rx1, ry0, ry1] = rect.map(usize::from);
-            let (cx0, cx1) = (rx0.max(x0), rx1.min(x1 - 1));
-            let (cy0, cy1) = (ry0.max(y0), ry1.min(y1 - 1));
-            if cx0 > cx1 || cy0 > cy1 {
-                self.push_nowhere();
-            } else {
-                self.push([cx0 - x0, cx1 - x0, cy0 - y0, cy1 - y0]);
-            }
-        }
+        for_each_clipped(
+            splats,
+            list,
+            [x0, x1, y0, y1],
+            ids,
+            |_, _, clipped| match clipped {
+                Some([cx0, cx1, cy0, cy1]) => {
+                    self.push([cx0 - x0, cx1 - x0, cy0 - y0, cy1 - y0]);
+                }
+                None => self.push_nowhere(),
+            },
+        );
         while !self.units.len().is_multiple_of(16) {
             self.push_nowhere();
         }
@@ -1760,34 +1748,14 @@ fn distribute_rows(
     list: &[RowEntry],
     [x0, x1, y0, y1]: [usize; 4],
     units: &mut UnitLists,
-    mut ids: Option<&mut Vec<u32>>,
+    ids: Option<&mut Vec<u32>>,
 ) {
-    if let Some(ids) = ids.as_deref_mut() {
-        ids.clear();
-    }
-    for (i, &(e, rect)) in list.iter().enumerate() {
-        // The list's splats are scattered over the view's (depth order, not screen order):
-        // ask for one a few entries ahead, for the spans below and the units' walks.
-        if let Some(ahead) = list
-            .get(i + PREFETCH_AHEAD)
-            .and_then(|&(a, _)| splats.get(a as usize))
-        {
-            prefetch(ahead);
-        }
-        if let Some(ids) = ids.as_deref_mut() {
-            ids.push(splats.get(e as usize).map_or(NO_GAUSSIAN, |sp| sp.id));
-        }
+    for_each_clipped(splats, list, [x0, x1, y0, y1], ids, |i, e, clipped| {
+        let (Some([cx0, cx1, cy0, cy1]), Some(sp)) = (clipped, splats.get(e as usize)) else {
+            return;
+        };
         // A tile's list holds each splat at most once, and splat ids are u32: fits.
         let at = i as u32;
-        let [rx0, rx1, ry0, ry1] = rect.map(usize::from);
-        let (cx0, cx1) = (rx0.max(x0), rx1.min(x1 - 1));
-        let (cy0, cy1) = (ry0.max(y0), ry1.min(y1 - 1));
-        if cx0 > cx1 || cy0 > cy1 {
-            continue;
-        }
-        let Some(sp) = splats.get(e as usize) else {
-            continue;
-        };
         for py in cy0..cy1 + 1 {
             let span = if sp.inv_a > 0.0 {
                 row_span(sp, py, cx0, cx1)
@@ -1805,6 +1773,40 @@ fn distribute_rows(
                 units.push((py - y0) * UNITS_PER_ROW + uc, UnitEntry { at, lanes });
             }
         }
+    });
+}
+
+/// Goes through a tile's list in order: asks for the splat [`PREFETCH_AHEAD`] entries
+/// ahead (the list's splats are scattered over the view's: depth order, not screen
+/// order), records every entry's Gaussian id in `ids` (if given; cleared first), and
+/// calls `f(position, splat index, rectangle)` with the entry's rectangle clipped to the
+/// tile `[x0, x1) x [y0, y1)` (image pixels, inclusive; `None` where it misses the tile).
+#[inline(always)]
+fn for_each_clipped(
+    splats: &[Splat],
+    list: &[RowEntry],
+    [x0, x1, y0, y1]: [usize; 4],
+    mut ids: Option<&mut Vec<u32>>,
+    mut f: impl FnMut(usize, u32, Option<[usize; 4]>),
+) {
+    if let Some(ids) = ids.as_deref_mut() {
+        ids.clear();
+    }
+    for (i, &(e, rect)) in list.iter().enumerate() {
+        if let Some(ahead) = list
+            .get(i + PREFETCH_AHEAD)
+            .and_then(|&(a, _)| splats.get(a as usize))
+        {
+            prefetch(ahead);
+        }
+        if let Some(ids) = ids.as_deref_mut() {
+            ids.push(splats.get(e as usize).map_or(NO_GAUSSIAN, |sp| sp.id));
+        }
+        let [rx0, rx1, ry0, ry1] = rect.map(usize::from);
+        let (cx0, cx1) = (rx0.max(x0), rx1.min(x1 - 1));
+        let (cy0, cy1) = (ry0.max(y0), ry1.min(y1 - 1));
+        let clipped = (cx0 <= cx1 && cy0 <= cy1).then_some([cx0, cx1, cy0, cy1]);
+        f(i, e, clipped);
     }
 }
 
@@ -1850,8 +1852,8 @@ fn row_span(sp: &Splat, py: usize, cx0: usize, cx1: usize) -> Option<(usize, usi
 /// 1/255 even at opacity 1 (opacities are sigmoids, <= 1).
 const POWER_FLOOR: f32 = -40.0;
 
-/// How many list entries ahead [`TileRects::build`] and [`distribute_rows`] prefetch a
-/// splat (6 left the id reads of the first waiting on memory; 16 and 32 measured alike).
+/// How many list entries ahead [`for_each_clipped`] prefetches a splat (at 6 the id reads
+/// of `TileRects::build` waited on memory; 16 and 32 measured alike).
 const PREFETCH_AHEAD: usize = 16;
 
 /// Extra width, in pixels, of each per-row span beyond the solved ellipse bounds: far above
