@@ -1610,7 +1610,7 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         }
         // Lanes inside the image (the tiles at the right and bottom edges may be smaller).
         let (cols, rows) = ((x1 - x0 - c0).min(UNIT_W), (y1 - y0 - r0).min(unit_h));
-        let valid = V::from_bits(bit_range(0, cols - 1) * row_starts(0, rows - 1));
+        let valid = V::from_bits(bit_range(0, cols - 1) * spread_rows(bit_range(0, rows - 1)));
         let place = [x0 + c0, y0 + r0];
         let at = [u, r0 * TILE + c0];
         if unit_h > 1 {
@@ -1678,6 +1678,8 @@ impl TileRects {
     /// the tile).
     fn push(&mut self, [c0, c1, r0, r1]: [usize; 4]) {
         let (cols, rows) = (bit_range(c0, c1), bit_range(r0, r1));
+        // A tile's unit rows are UNITS_PER_ROW = 4 bits apart in `units`, as a unit's rows
+        // of lanes are in its lanes: the same spreading.
         let unit_rows = bit_range(r0 / UNIT_W, r1 / UNIT_W);
         let units = bit_range(c0 / UNIT_W, c1 / UNIT_W) * spread_rows(unit_rows);
         self.push_bits(units, cols | rows << 16);
@@ -1729,8 +1731,9 @@ impl TileRects {
     }
 }
 
-/// Four row bits (rows 0-3 of a unit) spread to bits 0, 4, 8 and 12: times a row's
-/// column bits (< 2^UNIT_W) it repeats them in each of those rows.
+/// Four row bits (rows 0-3 of a unit; a unit of one row has only bit 0) spread to bits 0,
+/// 4, 8 and 12: times a row's column bits (< 2^UNIT_W) it repeats them in each of those
+/// rows.
 #[inline(always)]
 fn spread_rows(r: u32) -> u32 {
     (r & 1) | ((r & 2) << 3) | ((r & 4) << 6) | ((r & 8) << 9)
@@ -1808,13 +1811,6 @@ fn for_each_clipped(
         let clipped = (cx0 <= cx1 && cy0 <= cy1).then_some([cx0, cx1, cy0, cy1]);
         f(i, e, clipped);
     }
-}
-
-/// Bit 0 of each of a unit's rows `j0..=j1` (rows [`UNIT_W`] bits apart): times a row's
-/// column bits (< 2^UNIT_W) it repeats them in each of those rows.
-#[inline(always)]
-fn row_starts(j0: usize, j1: usize) -> u32 {
-    (j0..j1 + 1).map(|j| 1u32 << (j * UNIT_W)).sum()
 }
 
 /// The columns of image row `py` within `cx0..=cx1` where `sp` may reach α >= 1/255:
