@@ -78,7 +78,10 @@
 //! * **Exact top-K.** While a tile is blended each pixel's list lives in the worker's tile
 //!   scratch, rank-major per lane group (rank r of all the group's pixels is one SIMD
 //!   vector), so a new contributor is inserted into every lane that wants it with one pass
-//!   of compares and blends, from the list's end up to the first rank no lane shifts into.
+//!   of compares and blends over every rank, from the first down, with no branch on the
+//!   data (stopping at the first rank no lane shifts into cost a mispredicted exit per
+//!   insertion, which was more). The lists of an image render carry Gaussian ids (one
+//!   lookup per insertion), so writing them out is a plain transposition.
 //!   A SIMD compare against each pixel's K-th weight first skips most contributors. A
 //!   newcomer goes after every entry with a weight >= its own and is dropped when the list
 //!   is full and its weight is <= the K-th: the result is the K largest weights of the full

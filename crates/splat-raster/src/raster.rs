@@ -1154,10 +1154,14 @@ struct TileScratch {
     wsum: PixelLines,
     /// Top-K weights, each list sorted by descending weight.
     lw: Vec<Line>,
-    /// Beside `lw`, the positions of the entries' splats in the tile's list (`list_ids`
-    /// maps them to Gaussian ids), as f32 bit patterns (only ever moved by blends);
-    /// [`NO_GAUSSIAN`] for padding.
+    /// Beside `lw`, the entries' Gaussian ids (with `lists_carry_ids`) or the positions of
+    /// their splats in the tile's list (`list_ids` maps them to Gaussian ids), as f32 bit
+    /// patterns (only ever moved by blends); [`NO_GAUSSIAN`] for padding.
     lid: Vec<Line>,
+    /// The lists carry Gaussian ids rather than positions: set for image outputs, which
+    /// take no positions, so that the output is a plain transposition (one id lookup per
+    /// insertion instead of one per output slot).
+    lists_carry_ids: bool,
     /// K of the lists.
     k: usize,
     /// Per blend unit of one row (4 lanes): the splats of the tile that reach it, in depth
@@ -1170,8 +1174,7 @@ struct TileScratch {
     /// Per blend unit: its lists' ranks from this one on are padding in every lane (they
     /// were never written in this tile: the lists are not cleared between tiles).
     fill: Vec<u16>,
-    /// The Gaussian ids of the tile's splats, in the order of its list: `lid` holds
-    /// positions in that list, which the output maps to ids.
+    /// The Gaussian ids of the tile's splats, in the order of its list.
     list_ids: Vec<u32>,
     tile_start: Vec<usize>,
     tile_entries: Vec<RowEntry>,
@@ -1223,6 +1226,7 @@ fn render_row(
     let mut list = std::mem::take(&mut st.tile_entries);
     let total = bucket_by_tile(entries, tiles_x, &mut start, &mut list);
     let splats = ctx.splats;
+    st.lists_carry_ids = true;
 
     let y0 = row.ty * TILE;
     let y1 = (y0 + TILE).min(ctx.height); // exclusive
@@ -1333,6 +1337,7 @@ where
     positions.resize(TILE_PIXELS * k, NO_GAUSSIAN);
     weights.resize(TILE_PIXELS * k, 0.0);
     let total = bucket_by_tile(entries, tiles_x, &mut start, &mut list);
+    st.lists_carry_ids = false;
     let y0 = ty * TILE;
     let y1 = (y0 + TILE).min(ctx.height);
     for tx in 0..tiles_x {
@@ -1432,23 +1437,34 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
             ) else {
                 continue;
             };
+            let pixels = run_start * k..(run_start + run_len) * k;
+            let (Some(pw), Some(pid)) = (dw.get_mut(pixels.clone()), did.get_mut(pixels.clone()))
+            else {
+                continue;
+            };
             // Rank-major (rank r of the unit's N pixels adjacent) to pixel-major, one
-            // pixel's K slots at a time (ranks from the fill on as padding); the scratch
-            // holds positions in the tile's list, the output Gaussian ids.
-            for lane in 0..run_len {
-                let p = (run_start + lane) * k;
-                let (Some(pw), Some(pid)) = (dw.get_mut(p..p + k), did.get_mut(p..p + k)) else {
-                    continue;
-                };
-                let mut pat = dat.as_deref_mut().and_then(|d| d.get_mut(p..p + k));
-                for (r, (w_out, id_out)) in pw.iter_mut().zip(pid.iter_mut()).enumerate() {
-                    // Past the fill, `sw` and `sid` end: padding.
-                    let src = r * N + lane0 + lane;
-                    let (w, at) = match (sw.get(src), sid.get(src)) {
-                        (Some(&w), Some(&at)) => (w, at.to_bits()),
-                        _ => (0.0, NO_GAUSSIAN),
-                    };
-                    *w_out = w;
+            // pixel's K slots at a time.
+            for (lane, pw) in pw.chunks_exact_mut(k).enumerate() {
+                transpose_lane::<N>(pw, sw, lane0 + lane, 0.0);
+            }
+            if st.lists_carry_ids {
+                let pid: &mut [f32] = bytemuck::cast_slice_mut(pid);
+                for (lane, pid) in pid.chunks_exact_mut(k).enumerate() {
+                    transpose_lane::<N>(pid, sid, lane0 + lane, f32::from_bits(NO_GAUSSIAN));
+                }
+                continue;
+            }
+            // The scratch holds positions in the tile's list, the output Gaussian ids.
+            let mut pat = dat.as_deref_mut().and_then(|d| d.get_mut(pixels));
+            for (lane, pid) in pid.chunks_exact_mut(k).enumerate() {
+                let mut pat = pat
+                    .as_deref_mut()
+                    .and_then(|d| d.get_mut(lane * k..(lane + 1) * k));
+                for (r, id_out) in pid.iter_mut().enumerate() {
+                    // Past the fill, `sid` ends: padding.
+                    let at = sid
+                        .get(r * N + lane0 + lane)
+                        .map_or(NO_GAUSSIAN, |a| a.to_bits());
                     *id_out = st.list_ids.get(at as usize).copied().unwrap_or(NO_GAUSSIAN);
                     if let Some(a) = pat.as_deref_mut().and_then(|pa| pa.get_mut(r)) {
                         *a = at;
@@ -1456,6 +1472,23 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
                 }
             }
         }
+    }
+}
+
+/// Fills one pixel's K slots `dst` from lane `lane` of the rank-major `src` (rank r at
+/// `src[r * N + lane]`, as many ranks as `src` holds), then `pad`.
+#[inline(always)]
+fn transpose_lane<const N: usize>(dst: &mut [f32], src: &[f32], lane: usize, pad: f32) {
+    if lane >= N {
+        return;
+    }
+    let ranks = (src.len() / N).min(dst.len());
+    let (head, tail) = dst.split_at_mut(ranks);
+    for (d, rank) in head.iter_mut().zip(src.chunks_exact(N)) {
+        *d = rank[lane];
+    }
+    for d in tail {
+        *d = pad;
     }
 }
 
@@ -1599,6 +1632,7 @@ fn blend_tile<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
         wsum: pixels_mut(&mut st.wsum),
         lw: flat_mut(&mut st.lw),
         lid: flat_mut(&mut st.lid),
+        ids: st.lists_carry_ids.then_some(&st.list_ids[..]),
         fill: &mut st.fill,
         k,
         counts: &mut st.counts,
@@ -1866,6 +1900,8 @@ struct UnitOut<'a> {
     wsum: &'a mut [f32; TILE_PIXELS],
     lw: &'a mut [f32],
     lid: &'a mut [f32],
+    /// The Gaussian ids by list position where the lists carry ids, else `None`.
+    ids: Option<&'a [u32]>,
     fill: &'a mut [u16],
     k: usize,
     #[cfg_attr(not(feature = "counters"), allow(dead_code))]
@@ -1992,8 +2028,12 @@ fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                     {
                         out.counts.inserted += u64::from(V::bits(cand).count_ones());
                     }
-                    let at = V::splat(f32::from_bits(e.at));
-                    kth = insert_group::<V>(lw, lid, k, fill, cand, w, at);
+                    let payload = match out.ids {
+                        Some(ids) => ids.get(e.at as usize).copied().unwrap_or(NO_GAUSSIAN),
+                        None => e.at,
+                    };
+                    let id = V::splat(f32::from_bits(payload));
+                    kth = insert_group::<V>(lw, lid, k, fill, cand, w, id);
                     // One more entry in each candidate lane (or one replaced when full).
                     fill = (fill + 1).min(k);
                 }
@@ -2043,14 +2083,15 @@ fn store_unit<V: Lanes>(v: V, dst: &mut [f32; TILE_PIXELS], at: usize) {
 /// Inserts (w, id) into the sorted lists of the lanes in `cand` of one group (`lw[r * N..]`,
 /// `lid[r * N..]`: rank r of the N lists) whose ranks from `fill` on are padding in every
 /// lane (whatever they hold: rank `fill` is read as padding, and later ranks are not
-/// read); returns the new K-th weights (0 while the lists are not full). Ranks are
-/// rewritten from the last non-padding one (or padding rank `fill`) upwards, all candidate
-/// lanes at once (ranks further down would only shift padding into padding): rank r takes
-/// rank r − 1's entry in lanes whose newcomer sits above r, the newcomer in lanes where it
-/// sits exactly at r, and keeps its entry elsewhere; the pass stops at the first rank no
-/// lane shifts into. A newcomer goes after the entries of equal weight (strict >), so ties
-/// keep depth order, and a full list drops its last entry: the same lists as inserting one
-/// pixel at a time.
+/// read); returns the new K-th weights (0 while the lists are not full). One pass from
+/// the first rank to the new last one rewrites every rank in every lane, with no branch
+/// on the data: rank r takes the entry carried down from above in the candidate lanes
+/// whose newcomer outweighs its entry (the newcomer at the first such rank, then each
+/// displaced entry one rank lower) and keeps its entry elsewhere. A newcomer goes after
+/// the entries of equal weight (strict >), so ties keep depth order, and a full list
+/// drops its last entry: the same lists as inserting one pixel at a time. (The pass
+/// always walks every rank, so its loop exit is as predictable as the fill; stopping at
+/// the first rank no lane shifts into cost a mispredicted exit a call, which was more.)
 #[inline(always)]
 fn insert_group<V: Lanes>(
     lw: &mut [f32],
@@ -2062,39 +2103,40 @@ fn insert_group<V: Lanes>(
     id: V,
 ) -> V {
     let n = V::N;
-    let mut r = fill.min(k - 1);
-    let (mut cur_w, mut cur_id) = if r == fill {
-        (V::splat(0.0), V::splat(f32::from_bits(NO_GAUSSIAN)))
-    } else {
-        (V::load(&lw[r * n..]), V::load(&lid[r * n..]))
+    let kept = fill.min(k);
+    let (Some(lw), Some(lid)) = (lw.get_mut(..k * n), lid.get_mut(..k * n)) else {
+        return V::splat(0.0);
     };
-    // Lanes whose newcomer belongs at rank r or above.
-    let mut at_or_above = cand & w.gt(cur_w);
-    loop {
-        if r == 0 {
-            V::select(at_or_above, w, cur_w).store(&mut lw[..n]);
-            V::select(at_or_above, id, cur_id).store(&mut lid[..n]);
-            break;
-        }
-        let prev_w = V::load(&lw[(r - 1) * n..]);
-        let prev_id = V::load(&lid[(r - 1) * n..]);
-        let above = cand & w.gt(prev_w);
-        V::select(above, prev_w, V::select(at_or_above, w, cur_w)).store(&mut lw[r * n..]);
-        V::select(above, prev_id, V::select(at_or_above, id, cur_id)).store(&mut lid[r * n..]);
-        if V::bits(above) == 0 {
-            break;
-        }
-        at_or_above = above;
-        cur_w = prev_w;
-        cur_id = prev_id;
-        r -= 1;
+    let (mut carry_w, mut carry_id) = (w, id);
+    let mut last_w = V::splat(0.0);
+    for (rw, rid) in lw
+        .chunks_exact_mut(n)
+        .zip(lid.chunks_exact_mut(n))
+        .take(kept)
+    {
+        let (old_w, old_id) = (V::load(rw), V::load(rid));
+        let shift = cand & w.gt(old_w);
+        last_w = V::select(shift, carry_w, old_w);
+        last_w.store(rw);
+        V::select(shift, carry_id, old_id).store(rid);
+        carry_w = V::select(shift, old_w, carry_w);
+        carry_id = V::select(shift, old_id, carry_id);
     }
-    // Every rank below the new fill has been written.
-    if fill + 1 >= k {
-        V::load(&lw[(k - 1) * n..])
-    } else {
-        V::splat(0.0)
+    if kept < k {
+        // Rank `fill` is padding in every lane: the candidates' carried entries land
+        // there, the other lanes get explicit padding.
+        let (Some(rw), Some(rid)) = (lw.get_mut(kept * n..), lid.get_mut(kept * n..)) else {
+            return V::splat(0.0);
+        };
+        let shift = cand;
+        V::select(shift, carry_w, V::splat(0.0)).store(rw);
+        V::select(shift, carry_id, V::splat(f32::from_bits(NO_GAUSSIAN))).store(rid);
+        if kept + 1 < k {
+            return V::splat(0.0);
+        }
+        return V::load(rw);
     }
+    last_w
 }
 
 /// Entries whose α [`blend_unit`] computes ahead of compositing them.
@@ -2209,8 +2251,8 @@ fn write_tile(ctx: &Ctx<'_>, row: &mut RowOut<'_>, [x0, x1, y0, y1]: [usize; 4],
 #[cfg(test)]
 mod tests {
     use super::{
-        bucket_by_row, depth_key, f32x4, key_position, sort_by_depth, ChunkRecords, DepthRecord,
-        RowEntry, TileRects, TILE, TILE_PIXELS, UNIT_W,
+        bucket_by_row, depth_key, f32x4, insert_group, key_position, sort_by_depth, ChunkRecords,
+        DepthRecord, Lanes, Level, RowEntry, TileRects, NO_GAUSSIAN, TILE, TILE_PIXELS, UNIT_W,
     };
 
     /// A small LCG: deterministic test values below `m`.
@@ -2467,5 +2509,87 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Streams of contributions through `insert_group`, N lanes at a time, against sorted
+    /// per-pixel lists built one entry at a time (descending weight, a newcomer after equal
+    /// weights, the last entry dropped when full, padding `NO_GAUSSIAN` / 0). Weights come
+    /// from a few values, so ties are common; candidates are the lanes whose weight beats
+    /// their K-th, as in the blend, and ranks past the fill start as garbage.
+    fn insertions_match_one_pixel_at_a_time<V: Lanes>() {
+        let n = V::N;
+        let mut next = lcg(23);
+        for k in [1usize, 2, 3, 10, 40] {
+            for stream in 0..60 {
+                let mut lw = vec![f32::NAN; k * n];
+                let mut lid = vec![f32::from_bits(0xDEAD); k * n];
+                let mut reference: Vec<Vec<(f32, u32)>> = vec![Vec::new(); n];
+                let mut kth = V::splat(0.0);
+                let mut fill = 0usize;
+                for step in 0..(3 * k + 5) as u32 {
+                    let ws: Vec<f32> = (0..n)
+                        .map(|_| match next(5) {
+                            0 => 0.0,
+                            v => v as f32 * if stream % 2 == 0 { 0.25 } else { 0.1 },
+                        })
+                        .collect();
+                    let w = V::load(&ws);
+                    let cand = w.gt(kth);
+                    if V::bits(cand) == 0 {
+                        continue;
+                    }
+                    let id = V::splat(f32::from_bits(step));
+                    kth = insert_group::<V>(&mut lw, &mut lid, k, fill, cand, w, id);
+                    fill = (fill + 1).min(k);
+                    for (lane, list) in reference.iter_mut().enumerate() {
+                        if V::bits(cand) >> lane & 1 == 0 {
+                            continue;
+                        }
+                        let at = list.iter().take_while(|e| e.0 >= ws[lane]).count();
+                        list.insert(at, (ws[lane], step));
+                        list.truncate(k);
+                    }
+                    let mut kths = vec![0.0f32; n];
+                    kth.store(&mut kths);
+                    for (lane, list) in reference.iter().enumerate() {
+                        let want = if list.len() == k { list[k - 1].0 } else { 0.0 };
+                        assert_eq!(
+                            kths[lane], want,
+                            "K-th, k {k}, stream {stream}, lane {lane}"
+                        );
+                        for r in 0..fill {
+                            let (w, id) = list.get(r).copied().unwrap_or((0.0, NO_GAUSSIAN));
+                            let got = (lw[r * n + lane], lid[r * n + lane].to_bits());
+                            assert_eq!(
+                                got,
+                                (w, id),
+                                "k {k}, stream {stream}, lane {lane}, rank {r}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn group_insertion_equals_sorted_insertion_per_pixel() {
+        insertions_match_one_pixel_at_a_time::<f32x4>();
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[allow(unsafe_code)]
+    #[test]
+    fn group_insertion_equals_sorted_insertion_per_pixel_16_lanes() {
+        if Level::detect() != Level::Avx512 {
+            eprintln!("skipped: this CPU has no AVX-512 F + DQ");
+            return;
+        }
+        #[target_feature(enable = "avx512f,avx512dq")]
+        fn run() {
+            insertions_match_one_pixel_at_a_time::<super::F32x16>();
+        }
+        // SAFETY: the features were detected above.
+        unsafe { run() }
     }
 }
