@@ -185,15 +185,23 @@ const LANES: usize = 4;
 /// How many groups of [`LANES`] rows ahead [`LookupTable::inner_products_of`] prefetches.
 const PREFETCH_GROUPS: usize = 16;
 
-/// Hints that `bytes` will be read soon (every cache line of it); a no-op off x86-64.
+/// Hints that `bytes` will be read soon (every cache line it touches); a no-op off
+/// x86-64. The lines are counted from the one holding the first byte: codes inside a
+/// mapped file start wherever the file puts them (a 128-byte row at offset 56 of a line
+/// touches three lines, and stepping 64 bytes from its start would miss the third).
 #[allow(unsafe_code)]
 fn prefetch(bytes: &[u8]) {
     #[cfg(target_arch = "x86_64")]
-    for line in bytes.chunks(64) {
+    {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        // SAFETY: SSE is part of every x86-64 CPU, and a prefetch never faults or reads
-        // into the program: the address only has to be computed.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().cast()) };
+        let start = bytes.as_ptr();
+        let misalign = start as usize % 64;
+        for offset in (0..misalign + bytes.len()).step_by(64) {
+            let line = start.wrapping_sub(misalign).wrapping_add(offset);
+            // SAFETY: SSE is part of every x86-64 CPU, and a prefetch never faults or
+            // reads into the program: the address only has to be computed.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(line.cast()) };
+        }
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = bytes;
