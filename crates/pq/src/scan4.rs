@@ -203,14 +203,13 @@ mod x86 {
         maxima: &mut [u16],
     ) {
         let nibble = _mm512_set1_epi8(0x0f);
-        let low_byte = _mm512_set1_epi16(0x00ff);
         for ((block, out), max) in packed
             .chunks_exact(pairs * BLOCK)
             .zip(scores.chunks_exact_mut(BLOCK))
             .zip(maxima.iter_mut())
         {
             // Two pairs a register: lanes 0-1 hold pair p, lanes 2-3 pair p + 1.
-            let (mut first, mut second) = (_mm512_setzero_si512(), _mm512_setzero_si512());
+            let (mut words, mut second) = (_mm512_setzero_si512(), _mm512_setzero_si512());
             let mut p = 0;
             while p < pairs {
                 // SAFETY: p + 2 <= pairs, so every load reads 64 bytes inside its slice.
@@ -225,10 +224,15 @@ mod x86 {
                 let high = _mm512_and_si512(_mm512_srli_epi16::<4>(x), nibble);
                 let r =
                     _mm512_add_epi8(_mm512_shuffle_epi8(tl, low), _mm512_shuffle_epi8(th, high));
-                first = _mm512_add_epi16(first, _mm512_and_si512(r, low_byte));
+                // Whole words (low byte + 256 x high byte, modulo 2^16) and the high
+                // bytes; the low bytes' sum is recovered once a block, below, instead of
+                // masking every step.
+                words = _mm512_add_epi16(words, r);
                 second = _mm512_add_epi16(second, _mm512_srli_epi16::<8>(r));
                 p += 2;
             }
+            // Low sum = words − 256 x high sum (mod 2^16, exact: the low sum < 2^16).
+            let first = _mm512_sub_epi16(words, _mm512_slli_epi16::<8>(second));
             let fold = |v: __m512i| {
                 _mm256_add_epi16(_mm512_castsi512_si256(v), _mm512_extracti64x4_epi64::<1>(v))
             };
