@@ -831,7 +831,6 @@ mod tests {
     #![allow(clippy::expect_used)]
     use super::{FastScan, Reserve};
     use crate::synthetic::Clustered;
-    use crate::{train, TrainParams};
 
     /// The reserve only saves reading the scores again: every round takes the candidates
     /// a full pass would, so the candidate count, rounds, margin, re-ranked count and
@@ -842,16 +841,7 @@ mod tests {
         let mut later_rounds = 0;
         for (n, classes, seed) in [(100_000usize, 5usize, 42u64)] {
             let gen = Clustered::new(128, classes, 0.62, seed);
-            let features = gen.features(n, 11);
-            let params = TrainParams {
-                m: 32,
-                iters: 4,
-                sample: 4096,
-                seed: 3,
-            };
-            let pq = train(&features, &params)
-                .and_then(|c| c.encode_features(&features))
-                .expect("synthetic data trains");
+            let pq = gen.quick_pq(n, 32).expect("synthetic data trains");
             let fs = FastScan::new(&pq).expect("a valid pq");
             for qi in 0..3 {
                 let q = gen.query(qi % classes, 0.5, qi as u64 + 7);

@@ -6,9 +6,11 @@
 
 use std::collections::BTreeMap;
 
-use profuse_formats::{Features, Floats};
+use profuse_formats::{Features, Floats, Pq};
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+
+use crate::{train, PqError, TrainParams};
 
 /// Generator of clustered unit vectors.
 #[derive(Debug, Clone)]
@@ -122,6 +124,20 @@ impl Clustered {
             weight_sum: None,
             extra: BTreeMap::new(),
         }
+    }
+
+    /// A pq of `n` of these vectors (every 11th invalid) with `m` sub-quantisers, trained
+    /// quickly (4 Lloyd iterations on 4096 samples): the data of the crate's fast-scan
+    /// tests, small enough for a debug build.
+    pub fn quick_pq(&self, n: usize, m: usize) -> Result<Pq, PqError> {
+        let features = self.features(n, 11);
+        let params = TrainParams {
+            m,
+            iters: 4,
+            sample: 4096,
+            seed: 3,
+        };
+        train(&features, &params)?.encode_features(&features)
     }
 
     fn rng(&self, i: u64) -> ChaCha8Rng {

@@ -338,17 +338,7 @@ fn adc_shortlist_recall_at_100_is_at_least_0_99_at_the_default_shortlist() {
 /// A pq of `n` CLIP-like 128-d vectors in `classes` classes (every 11th invalid), M = 32.
 fn clip_like_pq(n: usize, classes: usize, seed: u64) -> (Clustered, Pq) {
     let gen = Clustered::new(128, classes, 0.62, seed);
-    let features = gen.features(n, 11);
-    let params = TrainParams {
-        m: 32,
-        iters: 4,
-        sample: 4096,
-        seed: 3,
-    };
-    let pq = train(&features, &params)
-        .unwrap()
-        .encode_features(&features)
-        .unwrap();
+    let pq = gen.quick_pq(n, 32).unwrap();
     (gen, pq)
 }
 
