@@ -17,7 +17,9 @@
 //!   vector's 4-bit code in a subspace is the group of its 8-bit code. 128 sub-quantisers
 //!   give 64 bytes a vector, half of what faiss's fast-scan (256 x 4 bits) reads.
 //! * **Layout.** Built once per pq ([`FastScan::new`]), in memory: blocks of 32 vectors,
-//!   per pair of sub-quantisers 32 bytes (two nibbles a byte; see the `scan4` module).
+//!   per pair of sub-quantisers 32 bytes (two nibbles a byte; see the `scan4` module),
+//!   in anonymous memory advised for transparent huge pages (the pass streams it: on
+//!   4 KiB pages the prefetchers stop at every page boundary).
 //! * **Coarse scores.** Per query the groups' inner products with the query, shifted to
 //!   start at 0 per subspace and scaled by one factor so that the largest is 127, are
 //!   rounded to u8; a vector's coarse score is the u16 sum of its M entries (AVX-512,
@@ -86,12 +88,66 @@ pub struct FastScan {
     /// Group centroids `[M, 16, dsub]`.
     group_centroids: Vec<f32>,
     /// `[blocks, pairs, 32]` bytes.
-    packed: Vec<u8>,
+    packed: HugeBytes,
     /// Smallest and largest decoded norm of a valid vector (1, 1 when none is valid).
     norm_range: (f32, f32),
     kernel: Kernel,
     /// The coarse score buffers, kept between searches.
     scratch: ScratchSlot,
+}
+
+/// Zeroed bytes in anonymous memory advised for transparent huge pages, for the packed
+/// 4-bit codes that every query streams through: with 4 KiB pages the hardware
+/// prefetchers stop at every page boundary (and each page needs a TLB entry), and the
+/// 4-bit pass over a million codes took ~2.6-3.2 ms of a fresh process's query against
+/// ~1.3-1.5 ms on 2 MiB pages. Falls back to a plain vector where no mapping can be
+/// made (then only the speed differs).
+#[derive(Debug)]
+enum HugeBytes {
+    Mapped(memmap2::MmapMut),
+    Plain(Vec<u8>),
+}
+
+impl HugeBytes {
+    fn zeroed(len: usize) -> HugeBytes {
+        if len == 0 {
+            return HugeBytes::Plain(Vec::new());
+        }
+        let Ok(map) = memmap2::MmapOptions::new().len(len).map_anon() else {
+            return HugeBytes::Plain(vec![0; len]);
+        };
+        // Best effort: without huge pages these are ordinary pages.
+        #[cfg(target_os = "linux")]
+        let _ = map.advise(memmap2::Advice::HugePage);
+        HugeBytes::Mapped(map)
+    }
+}
+
+impl std::ops::Deref for HugeBytes {
+    type Target = [u8];
+    fn deref(&self) -> &[u8] {
+        match self {
+            HugeBytes::Mapped(m) => m,
+            HugeBytes::Plain(v) => v,
+        }
+    }
+}
+
+impl std::ops::DerefMut for HugeBytes {
+    fn deref_mut(&mut self) -> &mut [u8] {
+        match self {
+            HugeBytes::Mapped(m) => m,
+            HugeBytes::Plain(v) => v,
+        }
+    }
+}
+
+impl Clone for HugeBytes {
+    fn clone(&self) -> Self {
+        let mut copy = HugeBytes::zeroed(self.len());
+        copy.copy_from_slice(self);
+        copy
+    }
 }
 
 /// The coarse scores of one search (2 bytes a vector) and each block's largest.
@@ -805,10 +861,10 @@ fn group_means(
 
 /// The 4-bit codes of every vector in scan layout, `[blocks, pairs, 32]`; padding
 /// vectors and sub-quantisers get nibble 0.
-fn pack(pq: &Pq, group_of: &[[u8; KSUB]], pairs: usize) -> Vec<u8> {
+fn pack(pq: &Pq, group_of: &[[u8; KSUB]], pairs: usize) -> HugeBytes {
     let (n, m) = (pq.len(), pq.m);
     let per_block = pairs * BLOCK;
-    let mut packed = vec![0u8; n.div_ceil(BLOCK) * per_block];
+    let mut packed = HugeBytes::zeroed(n.div_ceil(BLOCK) * per_block);
     packed
         .par_chunks_mut(per_block)
         .enumerate()
@@ -829,7 +885,7 @@ fn pack(pq: &Pq, group_of: &[[u8; KSUB]], pairs: usize) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     #![allow(clippy::expect_used)]
-    use super::{FastScan, Reserve};
+    use super::{FastScan, HugeBytes, Reserve};
     use crate::synthetic::Clustered;
 
     /// The reserve only saves reading the scores again: every round takes the candidates
@@ -869,5 +925,22 @@ mod tests {
         let r = Reserve::new(10.2, Vec::new());
         assert!(r.covers(11.0) && r.covers(11.5));
         assert!(!r.covers(10.9) && !r.covers(10.2));
+    }
+
+    /// Huge-page bytes start zeroed (the packing leaves padding untouched), take writes
+    /// across 2 MiB boundaries, and clone into equal bytes.
+    #[test]
+    fn huge_bytes_are_zeroed_writable_and_clone_equal() {
+        let len = (5 << 20) + 3;
+        let mut bytes = HugeBytes::zeroed(len);
+        assert_eq!(bytes.len(), len);
+        assert!(bytes.iter().all(|&b| b == 0));
+        for (i, b) in bytes.iter_mut().enumerate().step_by(4093) {
+            *b = (i % 251) as u8 + 1;
+        }
+        let copy = bytes.clone();
+        assert_eq!(&copy[..], &bytes[..]);
+        assert_eq!(copy[4093 * 600], (4093 * 600 % 251) as u8 + 1);
+        assert_eq!(HugeBytes::zeroed(0).len(), 0);
     }
 }
