@@ -1447,29 +1447,24 @@ fn write_lists<const N: usize>(out: &mut TopKOut<'_>, cols: usize, rows: usize, 
             for (lane, pw) in pw.chunks_exact_mut(k).enumerate() {
                 transpose_lane::<N>(pw, sw, lane0 + lane, 0.0);
             }
+            let pid_f: &mut [f32] = bytemuck::cast_slice_mut(pid);
+            for (lane, pid) in pid_f.chunks_exact_mut(k).enumerate() {
+                transpose_lane::<N>(pid, sid, lane0 + lane, f32::from_bits(NO_GAUSSIAN));
+            }
             if st.lists_carry_ids {
-                let pid: &mut [f32] = bytemuck::cast_slice_mut(pid);
-                for (lane, pid) in pid.chunks_exact_mut(k).enumerate() {
-                    transpose_lane::<N>(pid, sid, lane0 + lane, f32::from_bits(NO_GAUSSIAN));
-                }
                 continue;
             }
-            // The scratch holds positions in the tile's list, the output Gaussian ids.
-            let mut pat = dat.as_deref_mut().and_then(|d| d.get_mut(pixels));
-            for (lane, pid) in pid.chunks_exact_mut(k).enumerate() {
-                let mut pat = pat
-                    .as_deref_mut()
-                    .and_then(|d| d.get_mut(lane * k..(lane + 1) * k));
-                for (r, id_out) in pid.iter_mut().enumerate() {
-                    // Past the fill, `sid` ends: padding.
-                    let at = sid
-                        .get(r * N + lane0 + lane)
-                        .map_or(NO_GAUSSIAN, |a| a.to_bits());
-                    *id_out = st.list_ids.get(at as usize).copied().unwrap_or(NO_GAUSSIAN);
-                    if let Some(a) = pat.as_deref_mut().and_then(|pa| pa.get_mut(r)) {
-                        *a = at;
-                    }
-                }
+            // The scratch held positions in the tile's list: hand them out where asked,
+            // and map them to Gaussian ids (padding maps to padding).
+            if let Some(pat) = dat.as_deref_mut().and_then(|d| d.get_mut(pixels)) {
+                pat.copy_from_slice(pid);
+            }
+            for id in pid.iter_mut() {
+                *id = st
+                    .list_ids
+                    .get(*id as usize)
+                    .copied()
+                    .unwrap_or(NO_GAUSSIAN);
             }
         }
     }
@@ -2128,13 +2123,11 @@ fn insert_group<V: Lanes>(
         let (Some(rw), Some(rid)) = (lw.get_mut(kept * n..), lid.get_mut(kept * n..)) else {
             return V::splat(0.0);
         };
-        let shift = cand;
-        V::select(shift, carry_w, V::splat(0.0)).store(rw);
-        V::select(shift, carry_id, V::splat(f32::from_bits(NO_GAUSSIAN))).store(rid);
-        if kept + 1 < k {
-            return V::splat(0.0);
-        }
-        return V::load(rw);
+        let tail_w = V::select(cand, carry_w, V::splat(0.0));
+        tail_w.store(rw);
+        V::select(cand, carry_id, V::splat(f32::from_bits(NO_GAUSSIAN))).store(rid);
+        // The new K-th weights once this rank is the last one.
+        return if kept + 1 < k { V::splat(0.0) } else { tail_w };
     }
     last_w
 }
