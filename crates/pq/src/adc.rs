@@ -110,24 +110,18 @@ impl LookupTable {
     }
 
     /// Inner products of consecutive codes `[n, M]` into `out` (n values); each equals
-    /// [`LookupTable::inner_product`] bit for bit (see `sum_lanes`).
+    /// [`LookupTable::inner_product`] bit for bit (see `sum_batch`).
     ///
     /// # Panics
     /// If `codes.len() != out.len() * M`.
     pub fn inner_products(&self, codes: &[u8], out: &mut [f32]) {
         let m = self.table.len();
         assert_eq!(codes.len(), out.len() * m, "codes length");
-        let mut groups = codes.chunks_exact(LANES * m);
-        let mut outs = out.chunks_exact_mut(LANES);
-        for (g, o) in (&mut groups).zip(&mut outs) {
-            o.copy_from_slice(&self.sum_lanes(std::array::from_fn(|i| &g[i * m..(i + 1) * m])));
-        }
-        for (c, o) in groups
-            .remainder()
-            .chunks_exact(m)
-            .zip(outs.into_remainder())
-        {
-            *o = self.inner_product(c);
+        let mut rows: Vec<&[u8]> = Vec::with_capacity(BATCH);
+        for (batch, o) in codes.chunks(BATCH * m).zip(out.chunks_mut(BATCH)) {
+            rows.clear();
+            rows.extend(batch.chunks_exact(m));
+            self.sum_batch(&rows, o);
         }
     }
 
@@ -183,38 +177,16 @@ impl LookupTable {
             }
         }
     }
-
-    /// The inner products of four codes of M bytes each. The pass is bound by loads (one
-    /// table load per code byte), so the four sums run side by side (independent addition
-    /// chains hide the add latency) and each code is read eight bytes at a time.
-    fn sum_lanes(&self, rows: [&[u8]; LANES]) -> [f32; LANES] {
-        let m = self.table.len();
-        let words = m / 8;
-        let mut acc = [0f32; LANES];
-        for (w, t8) in self.table[..words * 8].chunks_exact(8).enumerate() {
-            let bytes: [u64; LANES] = std::array::from_fn(|i| word(rows[i], w));
-            for (b, t) in t8.iter().enumerate() {
-                for (a, &v) in acc.iter_mut().zip(&bytes) {
-                    *a += t[((v >> (8 * b)) & 0xff) as usize];
-                }
-            }
-        }
-        for (s, t) in self.table.iter().enumerate().skip(words * 8) {
-            for (a, row) in acc.iter_mut().zip(&rows) {
-                *a += t[row[s] as usize];
-            }
-        }
-        acc
-    }
 }
 
-/// Codes summed side by side in [`LookupTable::inner_products`].
+/// Codes summed side by side in `sum_batch`.
 const LANES: usize = 4;
 
-/// Codes scored together by [`LookupTable::inner_products_of`].
+/// Codes scored together by [`LookupTable::inner_products`] and
+/// [`LookupTable::inner_products_of`].
 const BATCH: usize = 64;
 
-/// Subspaces [`LookupTable::inner_products_of`] scores a whole batch on before the next
+/// Subspaces `sum_batch` scores a whole batch on before the next
 /// (16 KiB of table).
 const SPAN: usize = 16;
 
@@ -241,14 +213,6 @@ fn prefetch(bytes: &[u8]) {
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = bytes;
-}
-
-/// Bytes `8w..8w + 8` of a code as a little-endian word (byte b of the code in bits
-/// `8b..8b + 8`).
-fn word(code: &[u8], w: usize) -> u64 {
-    let mut b = [0u8; 8];
-    b.copy_from_slice(&code[w * 8..w * 8 + 8]);
-    u64::from_le_bytes(b)
 }
 
 pub(crate) fn cosine_of(ip: f32, query_norm: f32, norm: f32) -> f32 {

@@ -162,9 +162,14 @@ impl Scratch {
     /// then pays no first-touch page faults (~2 MB a million vectors, ~0.3 ms).
     fn touched(blocks: usize) -> Scratch {
         let mut s = Scratch::default();
-        s.scores.resize(blocks * BLOCK, 0);
-        s.maxima.resize(blocks, 0);
+        s.size_for(blocks);
         s
+    }
+
+    /// Sizes the buffers for `blocks` blocks (a no-op when they are).
+    fn size_for(&mut self, blocks: usize) {
+        self.scores.resize(blocks * BLOCK, 0);
+        self.maxima.resize(blocks, 0);
     }
 }
 
@@ -338,7 +343,7 @@ impl FastScan {
             let lowest = need(lo_norm).min(need(hi_norm));
             let keep = |u: u16, norm: f32| f64::from(u) >= need(norm);
             if reserve.covers(lowest) {
-                fresh = reserve.take(pq, scores, &pool, keep);
+                fresh = reserve.take(pq, scores, keep);
                 continue;
             }
             // The later rounds' floors fall as the margin grows (the largest residual
@@ -393,9 +398,7 @@ impl FastScan {
     /// Coarse u16 score of every vector (32 a block, padding included) and each block's
     /// largest, into `out` (every element written).
     fn coarse_scores(&self, coarse: &CoarseTable, out: &mut Scratch) {
-        let blocks = self.n.div_ceil(BLOCK);
-        out.scores.resize(blocks * BLOCK, 0);
-        out.maxima.resize(blocks, 0);
+        out.size_for(self.n.div_ceil(BLOCK));
         let per_block = self.pairs * BLOCK;
         let Scratch { scores, maxima } = out;
         scores
@@ -501,20 +504,13 @@ impl Reserve {
         self.floor.is_some_and(|f| lowest >= f)
     }
 
-    /// The kept vectors now passing `keep` (removed from the reserve), ascending.
-    fn take(
-        &mut self,
-        pq: &Pq,
-        scores: &[u16],
-        pool: &Candidates,
-        keep: impl Fn(u16, f32) -> bool,
-    ) -> Vec<u32> {
+    /// The kept vectors now passing `keep` (removed from the reserve), ascending. None of
+    /// the kept vectors is in the pool: the pass kept only vectors outside it and apart
+    /// from those it took, and the pool grows only by what a pass or `take` hands out.
+    fn take(&mut self, pq: &Pq, scores: &[u16], keep: impl Fn(u16, f32) -> bool) -> Vec<u32> {
         let mut taken = Vec::new();
         self.ids.retain(|&id| {
             let n = id as usize;
-            if pool.has(n) {
-                return false;
-            }
             if keep(scores[n], pq.norms[n]) {
                 taken.push(id);
                 return false;
