@@ -1296,7 +1296,12 @@ class Proposals(_Record):
     """``profuse.proposals``: the proposal of every mask plus per-proposal counts."""
 
     KIND: ClassVar[str] = "proposals"
-    TENSORS: ClassVar[tuple[str, ...]] = ("mask_proposal", "proposal_size", "proposal_views")
+    TENSORS: ClassVar[tuple[str, ...]] = (
+        "mask_proposal",
+        "proposal_size",
+        "proposal_views",
+        "mask_share",
+    )
 
     path: str
     metadata: dict[str, str]
@@ -1306,6 +1311,8 @@ class Proposals(_Record):
     proposal_size: np.ndarray
     #: U32 [P].
     proposal_views: np.ndarray
+    #: F32 [M], each in (0, 1], or None: the estimated share of each mask on one object.
+    mask_share: np.ndarray | None = None
 
     def counts(self) -> dict[str, int]:
         return {
@@ -1751,11 +1758,15 @@ def _proposals(c: Container) -> Proposals:
     r.req("mask_proposal", "U32", "M")
     r.req("proposal_size", "U32", "P")
     r.req("proposal_views", "U32", "P")
+    has_share = r.opt("mask_share", "F32", "M")
     a = r.load()
     path = c.path
     mp, size, views = a["mask_proposal"], a["proposal_size"], a["proposal_views"]
     p = size.shape[0]
     _check_ids(path, "mask_proposal", mp, p, NO_PROPOSAL, "the proposals")
+    share = a["mask_share"] if has_share else None
+    if share is not None:
+        _check_share(path, "mask_share", share)
     members = np.bincount(mp[mp != NO_PROPOSAL].astype(np.int64), minlength=p)[:p]
     size64 = size.astype(np.int64)
     views64 = views.astype(np.int64)
@@ -1785,7 +1796,16 @@ def _proposals(c: Container) -> Proposals:
         mask_proposal=mp,
         proposal_size=size,
         proposal_views=views,
+        mask_share=share,
     )
+
+
+def _check_share(path: str, tensor: str, share: np.ndarray) -> None:
+    """Every value finite and in (0, 1] (a per-mask share)."""
+    _check_finite(path, tensor, share)
+    i = _first(~((share > 0) & (share <= 1)))
+    if i is not None:
+        raise _out_of_range(path, tensor, i, _display_float(share[i]), "a share in (0, 1]")
 
 
 def _features(c: Container) -> Features:
@@ -2131,6 +2151,7 @@ class FusePartial(_Record):
         "views",
         "mask_group",
         "mask_proposal",
+        "mask_share",
         "mask_features",
         "mask_mass",
         "w_offsets",
@@ -2156,6 +2177,8 @@ class FusePartial(_Record):
     mask_group: np.ndarray
     #: U32 [M] for grouping ``blend``, else None.
     mask_proposal: np.ndarray | None
+    #: F32 [M] (each in (0, 1]) or None: the proposals' ``mask_share``.
+    mask_share: np.ndarray | None
     #: F16 or F32 [M, D].
     mask_features: np.ndarray
     #: U64 [M, 2]: fixed-point masses, (low, high) words.
@@ -2281,6 +2304,7 @@ def _fuse_partial(c: Container) -> FusePartial:
     r.req("views", "U32", "S")
     r.req("mask_group", "U32", "M")
     has_proposal = r.opt("mask_proposal", "U32", "M")
+    has_share = r.opt("mask_share", "F32", "M")
     feat_dtype = r.req_either("mask_features", ("F16", "F32"), "M,D")
     dim = r.dim("D")
     r.req("mask_mass", "U64", "M,2", lanes=2)
@@ -2300,6 +2324,11 @@ def _fuse_partial(c: Container) -> FusePartial:
         raise _out_of_range(path, "views", i, int(views[i]), f"ascending unique view ids < {num_views}")
     proposal = a["mask_proposal"] if has_proposal else None
     _fuse_partial_groups(path, grouping, orphans, num_groups, a["mask_group"], proposal)
+    share = a["mask_share"] if has_share else None
+    if share is not None:
+        if grouping == "masks":
+            raise _invalid(path, "mask_share", "present only for groupings `proposals` and `blend`, not `masks`")
+        _check_share(path, "mask_share", share)
     _check_finite(path, "mask_features", a["mask_features"])
     del feat_dtype  # either precision is fine; no unit-norm rule
     _fuse_partial_weights(path, num_groups, a["w_offsets"], a["w_groups"], a["w_sums"])
@@ -2317,6 +2346,7 @@ def _fuse_partial(c: Container) -> FusePartial:
         views=views,
         mask_group=a["mask_group"],
         mask_proposal=proposal,
+        mask_share=share,
         mask_features=a["mask_features"],
         mask_mass=a["mask_mass"],
         w_offsets=a["w_offsets"],
@@ -3068,16 +3098,19 @@ def write_proposals(
     mask_proposal: Any,
     proposal_size: Any,
     proposal_views: Any,
+    mask_share: Any = None,
     metadata: dict[str, str] | None = None,
     generator: str | None = GENERATOR,
 ) -> None:
     """``profuse.proposals`` (SPEC.md 4.6): proposal id per global mask (4294967295 =
-    none), members and distinct views per proposal."""
+    none), members and distinct views per proposal, optionally ``mask_share`` (F32 [M],
+    each in (0, 1])."""
     p = _label(path)
     tensors = {
         "mask_proposal": _tensor(p, "mask_proposal", mask_proposal, ("U32",)),
         "proposal_size": _tensor(p, "proposal_size", proposal_size, ("U32",)),
         "proposal_views": _tensor(p, "proposal_views", proposal_views, ("U32",)),
+        "mask_share": _opt(p, "mask_share", mask_share, ("F32",)),
     }
     _finish(path, "proposals", tensors, {}, metadata, generator)
 
@@ -3299,6 +3332,7 @@ def write_fuse_partial(
     w_groups: Any,
     w_sums: Any,
     mask_proposal: Any = None,
+    mask_share: Any = None,
     metadata: dict[str, str] | None = None,
     generator: str | None = GENERATOR,
 ) -> None:
@@ -3311,6 +3345,7 @@ def write_fuse_partial(
         "views": _tensor(p, "views", views, ("U32",)),
         "mask_group": _tensor(p, "mask_group", mask_group, ("U32",)),
         "mask_proposal": _opt(p, "mask_proposal", mask_proposal, ("U32",)),
+        "mask_share": _opt(p, "mask_share", mask_share, ("F32",)),
         "mask_features": _tensor(p, "mask_features", mask_features, ("F16", "F32")),
         "mask_mass": _tensor(p, "mask_mass", mask_mass, ("U64",)),
         "w_offsets": _tensor(p, "w_offsets", w_offsets, ("U64",)),

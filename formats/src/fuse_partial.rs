@@ -115,6 +115,10 @@ pub struct FusePartial {
     pub mask_group: Buffer<u32>,
     /// `mask_proposal` U32 [M]: present exactly for grouping `blend`.
     pub mask_proposal: Option<Buffer<u32>>,
+    /// Optional `mask_share` F32 [M], each in (0, 1]: the proposals file's `mask_share`,
+    /// by which a member's mass is weighed in its proposal's descriptor; absent = every
+    /// member weighs its mass (never present for grouping `masks`).
+    pub mask_share: Option<Buffer<f32>>,
     /// `mask_features` F16 or F32 [M, D].
     pub mask_features: Floats,
     /// D >= 1.
@@ -178,6 +182,7 @@ impl FileKind for FusePartial {
         let views = r.req("views", "S")?;
         let mask_group = r.req("mask_group", "M")?;
         let mask_proposal = r.opt("mask_proposal", "M")?;
+        let mask_share = r.opt("mask_share", "M")?;
         let mask_features = r.req_floats("mask_features", "M,D")?;
         Ok(FusePartial {
             num_gaussians,
@@ -190,6 +195,7 @@ impl FileKind for FusePartial {
             views,
             mask_group,
             mask_proposal,
+            mask_share,
             mask_features,
             dim: r.dim("D"),
             mask_mass: r.req("mask_mass", "M,2")?,
@@ -204,6 +210,16 @@ impl FileKind for FusePartial {
         self.check_shapes(path)?;
         self.check_views(path)?;
         self.check_groups(path)?;
+        if let Some(share) = &self.mask_share {
+            if self.grouping == FuseGrouping::Masks {
+                return Err(invalid(
+                    path,
+                    "mask_share",
+                    "present only for groupings `proposals` and `blend`, not `masks`".into(),
+                ));
+            }
+            crate::proposals::check_share(path, "mask_share", share, self.num_masks())?;
+        }
         check_finite_floats(path, "mask_features", &self.mask_features)?;
         self.check_weights(path)
     }
@@ -229,6 +245,9 @@ impl FileKind for FusePartial {
             .tensor("w_sums", &[e, 2], &self.w_sums);
         if let Some(p) = &self.mask_proposal {
             w.tensor("mask_proposal", &[m], p);
+        }
+        if let Some(s) = &self.mask_share {
+            w.tensor("mask_share", &[m], s);
         }
         match &self.mask_features {
             Floats::F16(b) => w.tensor("mask_features", &[m, self.dim], b),

@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::check::{check_ids, check_len, invalid, TensorReader};
+use crate::check::{check_finite, check_ids, check_len, invalid, out_of_range, TensorReader};
 use crate::container::{Buffer, Container};
 use crate::error::Result;
 use crate::kind::{FileKind, Kind};
@@ -22,6 +22,10 @@ pub struct Proposals {
     pub proposal_size: Buffer<u32>,
     /// `proposal_views` U32 [P]: distinct views among the members (1..=size).
     pub proposal_views: Buffer<u32>,
+    /// Optional `mask_share` F32 [M], each in (0, 1]: the estimated share of every mask's
+    /// area that lies on the one object its best container in the other views holds
+    /// (written by the consensus grouping; `fuse` weighs a member's mass by it).
+    pub mask_share: Option<Buffer<f32>>,
     /// Other metadata (the thresholds used are recorded here), kept on round trips.
     pub extra: BTreeMap<String, String>,
 }
@@ -80,6 +84,7 @@ impl FileKind for Proposals {
             mask_proposal: r.req("mask_proposal", "M")?,
             proposal_size: r.req("proposal_size", "P")?,
             proposal_views: r.req("proposal_views", "P")?,
+            mask_share: r.opt("mask_share", "M")?,
             extra: r.extra_meta(&[]),
         })
     }
@@ -101,6 +106,9 @@ impl FileKind for Proposals {
             Some(u64::from(NO_PROPOSAL)),
             "the proposals",
         )?;
+        if let Some(s) = &self.mask_share {
+            check_share(path, "mask_share", s, self.mask_proposal.len())?;
+        }
         let mut members = vec![0u64; p];
         for id in self.mask_proposal.iter().filter(|id| **id != NO_PROPOSAL) {
             members[*id as usize] += 1;
@@ -152,6 +160,9 @@ impl FileKind for Proposals {
         )
         .tensor("proposal_size", &[self.len()], &self.proposal_size)
         .tensor("proposal_views", &[self.len()], &self.proposal_views);
+        if let Some(s) = &self.mask_share {
+            w.tensor("mask_share", &[s.len()], s);
+        }
     }
 
     fn counts(&self) -> BTreeMap<&'static str, u64> {
@@ -166,5 +177,15 @@ impl FileKind for Proposals {
                     .count() as u64,
             ),
         ])
+    }
+}
+
+/// A per-mask share tensor: `masks` values, each finite and in (0, 1].
+pub(crate) fn check_share(path: &str, tensor: &str, s: &[f32], masks: usize) -> Result<()> {
+    check_len(path, tensor, s.len(), masks, "values, one per mask")?;
+    check_finite(path, tensor, s)?;
+    match s.iter().position(|v| !(*v > 0.0 && *v <= 1.0)) {
+        Some(i) => Err(out_of_range(path, tensor, i, s[i], "a share in (0, 1]")),
+        None => Ok(()),
     }
 }

@@ -212,6 +212,7 @@ pub fn proposals() -> Proposals {
         mask_proposal: vec![0, 1, u32::MAX, 1, 0].into(),
         proposal_size: vec![2, 2].into(),
         proposal_views: vec![2, 2].into(),
+        mask_share: Some(vec![0.875, 1.0, 0.5, 0.75, 0.625].into()),
         extra: BTreeMap::from([("tau_iou".to_string(), "0.2".to_string())]),
     }
 }
@@ -442,6 +443,7 @@ pub fn fuse_partial() -> FusePartial {
         views: vec![0, 2].into(),
         mask_group: vec![0, n, 2].into(),
         mask_proposal: Some(vec![0, n, 0].into()),
+        mask_share: Some(vec![1.0, 0.5, 0.75].into()),
         mask_features: vec![1.0, 0.0, 0.6, 0.8, 0.0, 1.0].into(),
         dim: 2,
         mask_mass: vec![[5 << 40, 0], [0, 0], [7 << 40, 1]].into(),
@@ -1126,6 +1128,16 @@ fn cases() -> Vec<Case> {
         "invalid",
         Some("proposal_size"),
     ));
+    inv.push((
+        "share",
+        mutated(&p, |p| {
+            if let Some(s) = p.mask_share.as_mut() {
+                set(s, 1, 1.5);
+            }
+        }),
+        "out_of_range",
+        Some("mask_share"),
+    ));
     cases.push(Case {
         stem: "proposals",
         valid: v,
@@ -1710,6 +1722,16 @@ fn fuse_partial_case() -> Case {
             mutated(&fp, |p| set(&mut p.w_sums, 2, [0, 0])),
             "out_of_range",
             Some("w_sums"),
+        ),
+        (
+            "share",
+            mutated(&fp, |p| {
+                if let Some(s) = p.mask_share.as_mut() {
+                    set(s, 0, 0.0);
+                }
+            }),
+            "out_of_range",
+            Some("mask_share"),
         ),
     ]);
     Case {

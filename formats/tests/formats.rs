@@ -487,7 +487,9 @@ proptest! {
         ids.sort_unstable(); ids.dedup();
         let mask_proposal: Vec<u32> = assign.iter().map(|a| ids.iter().position(|i| i == a).map_or(u32::MAX, |p| p as u32)).collect();
         let size: Vec<u32> = (0..ids.len() as u32).map(|p| mask_proposal.iter().filter(|m| **m == p).count() as u32).collect();
-        let p = Proposals { mask_proposal: mask_proposal.into(), proposal_views: size.clone().into(), proposal_size: size.into(), extra: Default::default() };
+        // Shares in (0, 1] for the even cases, none for the odd ones.
+        let mask_share = (assign.len() % 2 == 0).then(|| assign.iter().map(|a| (*a + 1) as f32 / 6.0).collect::<Vec<f32>>().into());
+        let p = Proposals { mask_proposal: mask_proposal.into(), proposal_views: size.clone().into(), proposal_size: size.into(), mask_share, extra: Default::default() };
         round_trip(&p);
     }
 

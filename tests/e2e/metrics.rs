@@ -361,6 +361,7 @@ fn proposals_from(assign: &[u32], views: &[u32]) -> Proposals {
             .map(|s| s.len() as u32)
             .collect::<Vec<_>>()
             .into(),
+        mask_share: None,
         extra: BTreeMap::new(),
     }
 }

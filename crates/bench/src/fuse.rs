@@ -6,7 +6,9 @@ use std::time::Instant;
 
 use profuse_formats::{Cameras, FileKind, Gaussians, Masks};
 use profuse_fuse::job::Register;
-use profuse_fuse::{accumulate, finish, Groups, Orphans, Precision, Scene, ViewReport};
+use profuse_fuse::{
+    accumulate, finish, Groups, MemberWeight, Orphans, Precision, Scene, ViewReport,
+};
 use serde::Serialize;
 use serde_json::{json, Value};
 
@@ -100,12 +102,23 @@ pub fn run(
             &masks,
             1,
         )?;
+        // Ground-truth proposals carry no shares: every member weighs its mass.
         let name = "ground-truth proposals";
         match p.registration {
-            Register::Proposals => {
-                Groups::from_proposals(&masks, &proposals, Orphans::Ignore, name)?
-            }
-            Register::Blend => Groups::blend(&masks, &proposals, Orphans::Ignore, name)?,
+            Register::Proposals => Groups::from_proposals(
+                &masks,
+                &proposals,
+                Orphans::Ignore,
+                MemberWeight::Mass,
+                name,
+            )?,
+            Register::Blend => Groups::blend(
+                &masks,
+                &proposals,
+                Orphans::Ignore,
+                MemberWeight::Mass,
+                name,
+            )?,
         }
     };
     let scene = Scene::new(&gaussians, &cameras, &masks);

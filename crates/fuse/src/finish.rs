@@ -159,6 +159,10 @@ pub fn finish(p: &PartialSums, precision: Precision) -> Registration {
         ),
         ("views".to_string(), p.views.len().to_string()),
     ]);
+    let mut extra = extra;
+    if p.groups.member_weight() == crate::MemberWeight::Share {
+        extra.insert("member_weight".to_string(), "share".to_string());
+    }
     Registration {
         features: Features {
             features,
@@ -358,13 +362,19 @@ pub fn registered_mask_descriptors(p: &PartialSums) -> Vec<Option<Vec<f32>>> {
 fn pooled_groups(p: &PartialSums) -> Vec<f64> {
     let weight = |m: usize| match p.groups.grouping {
         Grouping::Masks => 1.0,
-        Grouping::Proposals { .. } | Grouping::Blend { .. } => dequantise(p.mask_mass[m]),
+        Grouping::Proposals { .. } | Grouping::Blend { .. } => member_mass(p, m),
     };
     let of = |m: usize| {
         let g = p.groups.mask_group[m];
         (g != NO_GROUP).then_some(g as usize)
     };
     pool(p, p.groups.num_groups, of, weight)
+}
+
+/// What mask m weighs in its proposal's descriptor: μ_m, times s_m when the groups keep
+/// shares ([`crate::MemberWeight::Share`]).
+fn member_mass(p: &PartialSums, m: usize) -> f64 {
+    dequantise(p.mask_mass[m]) * p.groups.share(m)
 }
 
 /// [R, D]: row r is the normalised sum of `weight(m) f_m` over the masks with
@@ -429,7 +439,7 @@ fn blend_table(p: &PartialSums) -> Table {
         }
         ids.binary_search(&id).ok()
     };
-    let mass = |m: usize| dequantise(p.mask_mass[m]);
+    let mass = |m: usize| member_mass(p, m);
     let num_proposals = ids.len();
     let bar = pool(p, num_proposals, rank, mass);
 

@@ -33,8 +33,8 @@ use profuse_formats::{Cameras, FileKind, Gaussians, Masks, Proposals};
 use serde::{Deserialize, Serialize};
 
 use crate::{
-    accumulate, finish, Groups, Names, Orphans, PartialSums, Precision, Registration, Result,
-    ViewReport, DEFAULT_K,
+    accumulate, finish, Groups, MemberWeight, Names, Orphans, PartialSums, Precision, Registration,
+    Result, ViewReport, DEFAULT_K,
 };
 
 /// What a mask's pixels register.
@@ -62,6 +62,9 @@ pub struct Params {
     pub no_proposals: bool,
     /// `proposals` (paper) or `blend`; ignored with `no_proposals`.
     pub registration: Register,
+    /// What a member mask weighs in its proposal's descriptor: `share` (its mass times
+    /// the proposals file's `mask_share`, where the file has one) or `mass` (the paper).
+    pub member_weight: MemberWeight,
     /// Semantic index: the smallest share of a Gaussian's weight its largest proposal
     /// must hold to be its dominant proposal (in [0, 1]; stored in units of 1/255).
     pub min_share: f64,
@@ -74,6 +77,7 @@ impl Default for Params {
             orphans: Orphans::default(),
             no_proposals: false,
             registration: Register::default(),
+            member_weight: MemberWeight::default(),
             min_share: crate::DEFAULT_MIN_SHARE,
         }
     }
@@ -416,10 +420,20 @@ fn job_groups(job: &Job, params: &Params, masks: &Masks) -> Result<Groups> {
         Some(path) if !params.no_proposals => {
             let proposals = Proposals::read(path)?;
             match params.registration {
-                Register::Proposals => {
-                    Groups::from_proposals(masks, &proposals, params.orphans, &name(path))
-                }
-                Register::Blend => Groups::blend(masks, &proposals, params.orphans, &name(path)),
+                Register::Proposals => Groups::from_proposals(
+                    masks,
+                    &proposals,
+                    params.orphans,
+                    params.member_weight,
+                    &name(path),
+                ),
+                Register::Blend => Groups::blend(
+                    masks,
+                    &proposals,
+                    params.orphans,
+                    params.member_weight,
+                    &name(path),
+                ),
             }
         }
         _ => Ok(Groups::per_mask(masks)),

@@ -71,7 +71,9 @@
 //!
 //! ```
 //! use profuse_formats::{Cameras, FileKind, Gaussians, Masks};
-//! use profuse_fuse::{accumulate, finish, fuse, merge, FuseOptions, Groups, Orphans, Scene};
+//! use profuse_fuse::{
+//!     accumulate, finish, fuse, merge, FuseOptions, Groups, MemberWeight, Orphans, Scene,
+//! };
 //!
 //! // A tiny synthetic scene with ground-truth Gaussians; proposals from its ground truth
 //! // (in the pipeline they come from warp-graph).
@@ -84,7 +86,8 @@
 //! let masks = Masks::read(dir.path().join("masks.safetensors"))?;
 //! let proposals = profuse_fuse::testing::proposals_from_mask_objects(
 //!     dir.path().join("gt/mask_objects.json"), &masks, 1)?;
-//! let groups = Groups::from_proposals(&masks, &proposals, Orphans::Ignore, "proposals")?;
+//! let groups =
+//!     Groups::from_proposals(&masks, &proposals, Orphans::Ignore, MemberWeight::Share, "proposals")?;
 //!
 //! let scene = Scene::new(&gaussians, &cameras, &masks);
 //! let registration = fuse(&scene, &groups, &FuseOptions::default())?;
@@ -121,7 +124,7 @@ pub use error::{FuseError, Result};
 pub use finish::{
     finish, group_descriptors, registered_mask_descriptors, Precision, Registration, Summary, EPS,
 };
-pub use groups::{Grouping, Groups, Orphans, NO_GROUP};
+pub use groups::{Grouping, Groups, MemberWeight, Orphans, NO_GROUP};
 pub use partial::{merge, PartialSums, Timings, PARTIAL_FORMAT, PARTIAL_VERSION};
 pub use semantic::{semantic_index, DEFAULT_MIN_SHARE};
 
@@ -489,11 +492,24 @@ pub fn accumulate(
 /// as [`accumulate`] (the same routine: the members are one group, every other mask none,
 /// and [`group_descriptors`] pools them), so the result equals the proposal's row of a
 /// full registration. Only the views that hold a member are rendered, one at a time.
-/// `None` when the pool is zero (no member is hit by any Gaussian, or `members` is
-/// empty). A member id `>= M` is a [`FuseError::BadGrouping`].
-pub fn pooled_descriptor(scene: &Scene<'_>, members: &[u32], k: usize) -> Result<Option<Vec<f32>>> {
+/// With `shares` (a proposals file's `mask_share`, one per mask) each μ(m) is weighed by
+/// its share, as [`MemberWeight::Share`] registers. `None` when the pool is zero (no
+/// member is hit by any Gaussian, or `members` is empty). A member id `>= M`, or shares
+/// not one per mask, is a [`FuseError::BadGrouping`].
+pub fn pooled_descriptor(
+    scene: &Scene<'_>,
+    members: &[u32],
+    shares: Option<&[f32]>,
+    k: usize,
+) -> Result<Option<Vec<f32>>> {
     let masks = scene.masks;
     let num_masks = masks.num_masks();
+    if let Some(s) = shares.filter(|s| s.len() != num_masks) {
+        return Err(FuseError::BadGrouping {
+            masks: scene.names.masks.clone(),
+            detail: format!("{} member shares for {num_masks} masks", s.len()),
+        });
+    }
     let mut mask_group = vec![NO_GROUP; num_masks];
     for &m in members {
         let slot = mask_group
@@ -511,6 +527,7 @@ pub fn pooled_descriptor(scene: &Scene<'_>, members: &[u32], k: usize) -> Result
         mask_group,
         num_groups: 1,
         mask_proposal: Vec::new(),
+        mask_share: shares.map(<[f32]>::to_vec).unwrap_or_default(),
     };
     scene.check()?;
     let mut views: Vec<usize> = members.iter().map(|&m| masks.view_of(m as usize)).collect();

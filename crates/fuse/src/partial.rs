@@ -196,6 +196,8 @@ impl PartialSums {
             views: self.views.clone().into(),
             mask_group: self.groups.mask_group.clone().into(),
             mask_proposal,
+            mask_share: (!self.groups.mask_share.is_empty())
+                .then(|| self.groups.mask_share.clone().into()),
             mask_features: self.mask_features.clone(),
             dim: self.dim,
             mask_mass: words(&self.mask_mass).into(),
@@ -236,6 +238,7 @@ impl PartialSums {
                 mask_group: f.mask_group.to_vec(),
                 num_groups: f.num_groups,
                 mask_proposal: f.mask_proposal.map(|p| p.to_vec()).unwrap_or_default(),
+                mask_share: f.mask_share.map(|s| s.to_vec()).unwrap_or_default(),
             },
             mask_features: f.mask_features,
             dim: f.dim,
@@ -393,6 +396,13 @@ pub(crate) fn compare_facts(
         return Err((
             "mask_proposal",
             "one set of proposals".into(),
+            "a different one".into(),
+        ));
+    }
+    if a.groups.mask_share != b.groups.mask_share {
+        return Err((
+            "mask_share",
+            "one set of member shares".into(),
             "a different one".into(),
         ));
     }

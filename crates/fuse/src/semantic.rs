@@ -94,7 +94,7 @@ fn stored_table(rows: &[f64], precision: Precision) -> Floats {
 }
 
 fn metadata(p: &PartialSums) -> BTreeMap<String, String> {
-    BTreeMap::from([
+    let mut meta = BTreeMap::from([
         (
             "generator".to_string(),
             format!("profuse-fuse {}", env!("CARGO_PKG_VERSION")),
@@ -109,5 +109,9 @@ fn metadata(p: &PartialSums) -> BTreeMap<String, String> {
             p.groups().grouping.orphans_name().to_string(),
         ),
         ("views".to_string(), p.views().len().to_string()),
-    ])
+    ]);
+    if p.groups().member_weight() == crate::MemberWeight::Share {
+        meta.insert("member_weight".to_string(), "share".to_string());
+    }
+    meta
 }

@@ -63,6 +63,7 @@ pub fn proposals_from_mask_objects(
         mask_proposal: mask_proposal.into(),
         proposal_size: sizes.into(),
         proposal_views: views.into(),
+        mask_share: None,
         extra: BTreeMap::from([("generator".into(), "synth ground truth".into())]),
     })
 }

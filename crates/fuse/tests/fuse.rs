@@ -10,8 +10,9 @@ use profuse_formats::{
     Cameras, Container, FileKind, FileWriter, Floats, Gaussians, Kind, Labels, Masks, Proposals,
 };
 use profuse_fuse::{
-    accumulate, dequantise, finish, fuse, merge, quantise, registered_mask_descriptors, FuseError,
-    FuseOptions, Grouping, Groups, Orphans, PartialSums, Precision, Scene, NO_GROUP,
+    accumulate, dequantise, finish, fuse, group_descriptors, merge, quantise,
+    registered_mask_descriptors, FuseError, FuseOptions, Grouping, Groups, MemberWeight, Orphans,
+    PartialSums, Precision, Scene, NO_GROUP,
 };
 use splat_raster::{Rasterizer, RenderOptions, ViewCamera, ViewRender, NO_GAUSSIAN};
 
@@ -79,16 +80,37 @@ impl Fixture {
     }
 
     fn groups_with_orphans(&self, orphans: Orphans) -> Groups {
-        Groups::from_proposals(&self.masks, &self.proposals_without_first(), orphans, "p").unwrap()
+        Groups::from_proposals(
+            &self.masks,
+            &self.proposals_without_first(),
+            orphans,
+            MemberWeight::Share,
+            "p",
+        )
+        .unwrap()
     }
 
     fn groups(&self, min_members: usize, orphans: Orphans) -> Groups {
-        Groups::from_proposals(&self.masks, &self.proposals(min_members), orphans, "p").unwrap()
+        Groups::from_proposals(
+            &self.masks,
+            &self.proposals(min_members),
+            orphans,
+            MemberWeight::Share,
+            "p",
+        )
+        .unwrap()
     }
 
     /// The blend over the proposals of [`Fixture::proposals_without_first`].
     fn blend_groups(&self, orphans: Orphans) -> Groups {
-        Groups::blend(&self.masks, &self.proposals_without_first(), orphans, "p").unwrap()
+        Groups::blend(
+            &self.masks,
+            &self.proposals_without_first(),
+            orphans,
+            MemberWeight::Share,
+            "p",
+        )
+        .unwrap()
     }
 
     fn scene(&self) -> Scene<'_> {
@@ -588,8 +610,14 @@ fn blend_matches_the_brute_force_reference() {
         assert_eq!(reg.features.extra["orphans"], orphans.name());
         // The blend is not trivial here: some masks keep their proposal's descriptor,
         // others get a mix.
-        let paper =
-            Groups::from_proposals(&fx.masks, &fx.proposals_without_first(), orphans, "p").unwrap();
+        let paper = Groups::from_proposals(
+            &fx.masks,
+            &fx.proposals_without_first(),
+            orphans,
+            MemberWeight::Share,
+            "p",
+        )
+        .unwrap();
         let pooled = registered_mask_descriptors(
             &accumulate(&fx.scene(), &paper, k, 0..4, &mut |_| {}).unwrap(),
         );
@@ -640,8 +668,8 @@ fn coherent_proposals_blend_to_the_paper_bytes() {
     let masks = with_features(&fx.masks, features);
     let scene = Scene::new(&fx.gaussians, &fx.cameras, &masks);
     for orphans in [Orphans::Ignore, Orphans::Singleton] {
-        let paper = Groups::from_proposals(&masks, &p, orphans, "p").unwrap();
-        let blend = Groups::blend(&masks, &p, orphans, "p").unwrap();
+        let paper = Groups::from_proposals(&masks, &p, orphans, MemberWeight::Share, "p").unwrap();
+        let blend = Groups::blend(&masks, &p, orphans, MemberWeight::Share, "p").unwrap();
         let a = fuse(&scene, &paper, &f32_opts()).unwrap();
         let b = fuse(&scene, &blend, &f32_opts()).unwrap();
         assert_eq!(a.features.features, b.features.features, "{orphans:?}");
@@ -658,7 +686,14 @@ fn coherent_proposals_blend_to_the_paper_bytes() {
 fn a_mask_orthogonal_to_its_proposal_keeps_its_own_feature() {
     let fx = tiny(7, 2000);
     let (d, m_count) = (fx.masks.dim, fx.masks.num_masks());
-    let groups = Groups::blend(&fx.masks, &fx.proposals(1), Orphans::Ignore, "p").unwrap();
+    let groups = Groups::blend(
+        &fx.masks,
+        &fx.proposals(1),
+        Orphans::Ignore,
+        MemberWeight::Share,
+        "p",
+    )
+    .unwrap();
     let scene = fx.scene();
     // Masses do not depend on the features: take them from one pass.
     let mass: Vec<f64> = accumulate(&scene, &groups, 10, 0..4, &mut |_| {})
@@ -714,7 +749,14 @@ fn a_mask_orthogonal_to_its_proposal_keeps_its_own_feature() {
     );
     // The other members are more coherent than average: they keep f̄_P.
     let desc = profuse_fuse::group_descriptors(&partial);
-    let paper = Groups::from_proposals(&masks, &fx.proposals(1), Orphans::Ignore, "p").unwrap();
+    let paper = Groups::from_proposals(
+        &masks,
+        &fx.proposals(1),
+        Orphans::Ignore,
+        MemberWeight::Share,
+        "p",
+    )
+    .unwrap();
     let paper_desc =
         registered_mask_descriptors(&accumulate(&scene, &paper, 10, 0..4, &mut |_| {}).unwrap());
     let other = members
@@ -799,7 +841,8 @@ fn an_impure_proposal_does_not_poison_its_minority_under_blend() {
         .map(|e| e["class_id"].as_i64())
         .collect();
     let p = fx.proposals(1);
-    let groups = Groups::from_proposals(&fx.masks, &p, Orphans::Ignore, "p").unwrap();
+    let groups =
+        Groups::from_proposals(&fx.masks, &p, Orphans::Ignore, MemberWeight::Share, "p").unwrap();
     let mass: Vec<f64> = accumulate(&fx.scene(), &groups, 10, 0..4, &mut |_| {})
         .unwrap()
         .mask_mass()
@@ -888,8 +931,22 @@ fn an_impure_proposal_does_not_poison_its_minority_under_blend() {
         assert!(total > 20, "{total} Gaussians of B");
         (masks_b, right as f64 / total as f64)
     };
-    let paper = Groups::from_proposals(&fx.masks, &impure, Orphans::Ignore, "p").unwrap();
-    let blend = Groups::blend(&fx.masks, &impure, Orphans::Ignore, "p").unwrap();
+    let paper = Groups::from_proposals(
+        &fx.masks,
+        &impure,
+        Orphans::Ignore,
+        MemberWeight::Share,
+        "p",
+    )
+    .unwrap();
+    let blend = Groups::blend(
+        &fx.masks,
+        &impure,
+        Orphans::Ignore,
+        MemberWeight::Share,
+        "p",
+    )
+    .unwrap();
     let (paper_masks, paper_gaussians) = run(&paper);
     let (blend_masks, blend_gaussians) = run(&blend);
     let n = b_masks.len();
@@ -1195,7 +1252,14 @@ fn accumulator_size_is_independent_of_the_number_of_views() {
             .into(),
         ..p.clone()
     };
-    let groups = Groups::from_proposals(&masks, &proposals, Orphans::Ignore, "p").unwrap();
+    let groups = Groups::from_proposals(
+        &masks,
+        &proposals,
+        Orphans::Ignore,
+        MemberWeight::Share,
+        "p",
+    )
+    .unwrap();
     let scene = Scene::new(&fx.gaussians, &cameras, &masks);
     let mut reports = Vec::new();
     let doubled = accumulate(&scene, &groups, 10, 0..2 * v, &mut |r| reports.push(*r)).unwrap();
@@ -1310,7 +1374,14 @@ fn mismatched_inputs_are_typed_errors_naming_the_inputs() {
     // Proposals of another masks file.
     let mut p = fx.proposals(1);
     p.mask_proposal = p.mask_proposal[1..].to_vec().into();
-    let err = Groups::from_proposals(&fx.masks, &p, Orphans::Ignore, "p.safetensors").unwrap_err();
+    let err = Groups::from_proposals(
+        &fx.masks,
+        &p,
+        Orphans::Ignore,
+        MemberWeight::Share,
+        "p.safetensors",
+    )
+    .unwrap_err();
     assert!(err.to_string().contains("p.safetensors"), "{err}");
     // A grouping built in memory that points past its groups.
     let mut broken = groups.clone();
@@ -1371,6 +1442,35 @@ fn merge_rejects_overlaps_mismatches_and_corrupt_files() {
             err,
             FuseError::PartialMismatch {
                 field: "orphans",
+                ..
+            }
+        ),
+        "{err}"
+    );
+
+    // Member shares travel in the partial files: shards merge to the single run's
+    // descriptors, a file keeps them, and shards with other shares (or none) are refused.
+    let mut shared = groups.clone();
+    shared.mask_share = (0..fx.masks.num_masks())
+        .map(|m| 0.25 + 0.25 * (m % 4) as f32)
+        .collect();
+    let first = accumulate(&scene, &shared, 10, 0..2, &mut |_| {}).unwrap();
+    let second = accumulate(&scene, &shared, 10, 2..4, &mut |_| {}).unwrap();
+    let whole = accumulate(&scene, &shared, 10, 0..4, &mut |_| {}).unwrap();
+    let merged = merge(&[first.clone(), second.clone()], &names).unwrap();
+    assert_eq!(group_descriptors(&merged), group_descriptors(&whole));
+    let without = accumulate(&scene, &groups, 10, 0..4, &mut |_| {}).unwrap();
+    assert_ne!(group_descriptors(&whole), group_descriptors(&without));
+    let dir = tempfile::tempdir().unwrap();
+    first.write(dir.path().join("first.st")).unwrap();
+    let back = PartialSums::read(dir.path().join("first.st")).unwrap();
+    assert_eq!(back.groups(), first.groups());
+    let err = merge(&[a.clone(), second], &names).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            FuseError::PartialMismatch {
+                field: "mask_share",
                 ..
             }
         ),

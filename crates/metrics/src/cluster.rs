@@ -254,6 +254,8 @@ pub fn oracle_proposals(truth: &[u32], mask_view: &[u32]) -> Result<profuse_form
         mask_proposal: mask_proposal.into(),
         proposal_size: size.into(),
         proposal_views: proposal_views.into(),
+        // Every member is on its object by construction: the mass alone.
+        mask_share: None,
         extra: [("grouping".to_string(), "ground-truth".to_string())].into(),
     })
 }

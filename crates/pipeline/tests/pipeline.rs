@@ -243,6 +243,7 @@ fn given_proposals_replace_warp_graph() {
         mask_proposal: vec![u32::MAX; masks.num_masks() - 1].into(),
         proposal_size: Vec::<u32>::new().into(),
         proposal_views: Vec::<u32>::new().into(),
+        mask_share: None,
         extra: Default::default(),
     };
     let bad = dir.path().join("short.safetensors");

@@ -117,7 +117,9 @@ pub fn resolve_click(
             let members: Vec<u32> = (0..p.mask_proposal.len() as u32)
                 .filter(|&m| p.mask_proposal[m as usize] == id)
                 .collect();
-            let pooled = pooled_descriptor(scene, &members, k)?;
+            // Members weigh as fuse's default registers them (mass times share).
+            let shares = p.mask_share.as_deref();
+            let pooled = pooled_descriptor(scene, &members, shares, k)?;
             let unit = pooled.as_deref().and_then(unit_vector).ok_or_else(|| {
                 QueryError::NoClickDescriptor {
                     reason: format!(

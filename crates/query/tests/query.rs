@@ -1144,6 +1144,7 @@ fn click_scene(seed: u64) -> ClickScene {
         &masks,
         &proposals,
         profuse_fuse::Orphans::Singleton,
+        profuse_fuse::MemberWeight::Share,
         "proposals",
     )
     .unwrap();

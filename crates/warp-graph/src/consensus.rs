@@ -52,6 +52,13 @@
 //!    union-find) becomes one node (visible views: union; containers: union). Pairs seen
 //!    together by many views are decided first, when their evidence is strongest.
 //!
+//! 7. **Shares.** Every mask's share s_m = (weight its best container holds) / (weight
+//!    labelled), both summed over the other views that observe it (1 where none does),
+//!    goes into the proposals file (`mask_share`); `fuse` weighs a member's mass by it,
+//!    so that the part of a mask on a neighbouring object (a sofa mask merged with the
+//!    cabinet beside it, not flagged because most views see only its sofa part) does not
+//!    enter the proposal's descriptor in full.
+//!
 //! All counts are integers and every step runs in a fixed order, so the result does not
 //! depend on the thread count. Memory: one label per (point, view) as u32 (V · N · 4
 //! bytes; 160 MB for 200 views of 200,000 points) plus the masks' point lists and their
@@ -174,6 +181,18 @@ pub struct ConsensusStats {
     pub link_merges: u64,
 }
 
+/// What [`cluster`] found.
+pub(crate) struct Clustering {
+    /// Per mask: the smallest mask of its cluster.
+    pub root: Vec<u32>,
+    /// Per mask: under-segmented (in no proposal).
+    pub under: Vec<bool>,
+    /// Per mask: its share (the proposals file's `mask_share`; see the module docs).
+    pub share: Vec<f32>,
+    /// For the report.
+    pub stats: ConsensusStats,
+}
+
 /// Which Gaussians are tracked as points: every `stride`-th, the smallest stride that
 /// keeps at most `max_points`.
 pub(crate) fn point_stride(gaussians: usize, max_points: usize) -> usize {
@@ -267,11 +286,12 @@ impl MaskPoints {
 
 /// Per mask: the views that observe it with it contained (its visible views, as a bit
 /// set) and the global ids of the masks that contain it; `None` when under-segmented.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 struct MaskVotes {
     visible: Vec<u64>,
     containers: Vec<u32>,
     undersegmented: bool,
+    share: f32,
 }
 
 /// Observed/contained/split for mask `m` of view `own` with point ids `pts` of weights
@@ -293,9 +313,13 @@ fn mask_votes(
             visible,
             containers,
             undersegmented: true,
+            share: 1.0,
         };
     }
     let (mut observed, mut split) = (0usize, 0usize);
+    // Over the other views that observe m: the weight of its best container, and all
+    // the weight they label (for the share).
+    let (mut held, mut seen) = (0u64, 0u64);
     let total: u64 = wts.iter().map(|&w| u64::from(w)).sum();
     let mut counts: HashMap<u32, u64> = HashMap::new();
     for (k, lk) in labels.iter().enumerate() {
@@ -321,6 +345,8 @@ fn mask_votes(
         let Some((&best, &n)) = counts.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))) else {
             continue;
         };
+        held += n;
+        seen += labelled;
         if n as f64 > p.contained_ratio * labelled as f64 {
             visible[k / 64] |= 1 << (k % 64);
             containers.push(offsets[k] + best);
@@ -334,7 +360,19 @@ fn mask_votes(
         visible,
         containers,
         undersegmented,
+        share: mask_share(held, seen),
     }
+}
+
+/// A mask's share: the weight its best container holds over all the weight labelled, both
+/// summed over the other views that observe it (in (0, 1]: the best label holds at least
+/// its share of each view); 1 when no other view observes it.
+fn mask_share(held: u64, seen: u64) -> f32 {
+    if seen == 0 {
+        return 1.0;
+    }
+    // At least 2^-24, so that a share is never 0 in f32.
+    ((held as f64 / seen as f64) as f32).clamp(f32::EPSILON / 2.0, 1.0)
 }
 
 /// A cluster of masks during the iterations.
@@ -577,7 +615,7 @@ pub(crate) fn cluster(
     points: usize,
     links: &[Link],
     p: &ConsensusParams,
-) -> (Vec<u32>, Vec<bool>, ConsensusStats) {
+) -> Clustering {
     let views = labels.len();
     let masks = offsets.last().map_or(0, |m| *m as usize);
     let view_of = graph::views_of_masks(offsets);
@@ -588,6 +626,7 @@ pub(crate) fn cluster(
             mask_votes(pts, wts, view_of[m] as usize, m as u32, labels, offsets, p)
         })
         .collect();
+    let share: Vec<f32> = votes.iter().map(|v| v.share).collect();
     // Withdraw the votes of under-segmented masks.
     let under: Vec<bool> = votes.iter().map(|v| v.undersegmented).collect();
     for v in &mut votes {
@@ -636,7 +675,12 @@ pub(crate) fn cluster(
             root[m as usize] = r;
         }
     }
-    (root, under, stats)
+    Clustering {
+        root,
+        under,
+        share,
+        stats,
+    }
 }
 
 #[cfg(test)]
@@ -728,20 +772,30 @@ mod tests {
             point_weight: PointWeight::Points,
             ..ConsensusParams::default()
         };
-        let (root, under, _) = cluster(&labels, &build(PointWeight::Points), &offsets, 36, &[], &p);
+        let Clustering { root, under, .. } =
+            cluster(&labels, &build(PointWeight::Points), &offsets, 36, &[], &p);
         assert_eq!(under, vec![false; 9]);
         // Mask 0 (the merged one) and the sofa masks 1, 3, 5, 7 form one cluster.
         assert_eq!(root, vec![0, 0, 2, 0, 2, 0, 2, 0, 2]);
         let p = ConsensusParams::default();
         assert_eq!(p.point_weight, PointWeight::Pixels);
-        let (root, under, stats) =
-            cluster(&labels, &build(PointWeight::Pixels), &offsets, 36, &[], &p);
+        let Clustering {
+            root,
+            under,
+            share,
+            stats,
+        } = cluster(&labels, &build(PointWeight::Pixels), &offsets, 36, &[], &p);
         assert_eq!(
             under,
             vec![true, false, false, false, false, false, false, false, false]
         );
         assert_eq!(root, vec![0, 1, 2, 1, 2, 1, 2, 1, 2]);
         assert_eq!(stats.undersegmented, 1);
+        // The merged mask's share: the floor's 60 of the 90 pixel-weights each other view
+        // labels; every other mask lies on one object in every view (the merged view
+        // holds each whole).
+        assert_eq!(share[0], (60.0f64 / 90.0) as f32);
+        assert_eq!(share[1..], [1.0; 8]);
     }
 
     /// Five views see two objects (points 0-9 and 10-19). Views 0-3 separate them; view 4
@@ -769,7 +823,9 @@ mod tests {
             })
             .collect();
         let points = unit_points(&labels, &offsets);
-        let (root, under, stats) = cluster(
+        let Clustering {
+            root, under, stats, ..
+        } = cluster(
             &labels,
             &points,
             &offsets,
@@ -797,9 +853,15 @@ mod tests {
         let offsets = [0, 2, 3, 4, 5, 6];
         let points = unit_points(&labels, &offsets);
         let p = ConsensusParams::default();
-        let (root, under, _) = cluster(&labels, &points, &offsets, 20, &[], &p);
+        let Clustering {
+            root, under, share, ..
+        } = cluster(&labels, &points, &offsets, 20, &[], &p);
         assert_eq!(under, vec![false; 6]);
         assert_eq!(root, vec![0; 6]);
+        // A half lies on one mask everywhere; a whole mask is half in each of view 0's
+        // halves and whole in the other three views: (10 + 3 · 20) / (4 · 20).
+        assert_eq!(share[..2], [1.0, 1.0]);
+        assert_eq!(share[2..], [(70.0f64 / 80.0) as f32; 4]);
     }
 
     /// Two masks that no view observes together (disjoint point sets, as on a floor seen
@@ -821,11 +883,11 @@ mod tests {
         }];
         let mut p = ConsensusParams::default();
         let points = unit_points(&labels, &offsets);
-        let (root, _, stats) = cluster(&labels, &points, &offsets, 20, &links, &p);
+        let Clustering { root, stats, .. } = cluster(&labels, &points, &offsets, 20, &links, &p);
         assert_eq!(root, vec![0, 0, 0, 0]);
         assert_eq!(stats.link_merges, 1);
         p.link_merge = false;
-        let (root, _, _) = cluster(&labels, &points, &offsets, 20, &links, &p);
+        let Clustering { root, .. } = cluster(&labels, &points, &offsets, 20, &links, &p);
         assert_eq!(root, vec![0, 0, 2, 2]);
     }
 }

@@ -535,6 +535,7 @@ pub(crate) fn proposals_from_roots(
         mask_proposal: mask_proposal.into(),
         proposal_size: proposal_size.into(),
         proposal_views: proposal_views.into(),
+        mask_share: None,
         extra: metadata,
     };
     (proposals, stats)

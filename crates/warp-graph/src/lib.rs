@@ -582,18 +582,18 @@ impl<'a> Association<'a> {
             labels.push(seen.labels);
         }
         let points = n.div_ceil(stride);
-        let (roots, under, stats) =
-            consensus::cluster(&labels, &mask_points, offsets, points, links, cp);
+        let found = consensus::cluster(&labels, &mask_points, offsets, points, links, cp);
         let view_of = graph::views_of_masks(offsets);
-        let (p, c) = graph::proposals_from_roots(
+        let (mut p, c) = graph::proposals_from_roots(
             &view_of,
-            &roots,
-            &under,
+            &found.root,
+            &found.under,
             &self.params,
             ComponentStats::default(),
             self.metadata(),
         );
-        Ok((p, c, stats))
+        p.mask_share = Some(found.share.into());
+        Ok((p, c, found.stats))
     }
 
     /// Every mask's 3D extent when the extent rules run (views in parallel, collected in

@@ -13,7 +13,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use profuse_bench::fuse as bench;
 use profuse_formats::{Cameras, FileKind};
 use profuse_fuse::job::{self, Job, Params, Register};
-use profuse_fuse::{Orphans, Precision, DEFAULT_K};
+use profuse_fuse::{MemberWeight, Orphans, Precision, DEFAULT_K};
 use profuse_tools::{chatty, check_outputs, init_threads, progress_bar, run, BoxError};
 use serde_json::{json, Value};
 
@@ -93,7 +93,7 @@ struct RunArgs {
     #[arg(long, required_unless_present = "no_proposals")]
     proposals: Option<PathBuf>,
     /// No proposals: every mask registers its own feature (the Dr. Splat-style baseline).
-    #[arg(long, conflicts_with_all = ["proposals", "orphans", "registration"])]
+    #[arg(long, conflicts_with_all = ["proposals", "orphans", "registration", "member_weight"])]
     no_proposals: bool,
     /// What a mask's pixels register. `proposals` (paper): the proposal's descriptor
     /// f̄_P = normalise(Σ μ_k f_k over its masks). `blend`: per mask m,
@@ -104,6 +104,13 @@ struct RunArgs {
     /// W then has one column per mask (like --no-proposals), which costs memory and time.
     #[arg(long, value_enum, default_value = "proposals")]
     registration: Register,
+    /// What a member mask k weighs in f̄_P. `share` (default): μ_k · s_k, with s_k the
+    /// proposals file's `mask_share` (the share of the mask that the other views find on
+    /// one object; the consensus grouping writes it), so that the part of a mask lying on
+    /// a neighbouring object does not enter the proposal's descriptor; μ_k where the file
+    /// has no shares. `mass`: μ_k (the paper's eq. proposal-desc).
+    #[arg(long, value_enum, default_value = "share")]
+    member_weight: MemberWeight,
     /// The features file to write (profuse.features: descriptors, valid, weight_sum).
     #[arg(long, required_unless_present = "partial_out")]
     out: Option<PathBuf>,
@@ -234,6 +241,7 @@ fn run_command(a: RunArgs, show: bool) -> Result<Value, BoxError> {
         orphans: a.orphans,
         no_proposals: a.no_proposals,
         registration: a.registration,
+        member_weight: a.member_weight,
         min_share: a.min_share,
     };
     let bar = view_bar(show, views as u64);
