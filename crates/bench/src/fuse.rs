@@ -104,22 +104,17 @@ pub fn run(
         )?;
         // Ground-truth proposals carry no shares: every member weighs its mass.
         let name = "ground-truth proposals";
-        match p.registration {
-            Register::Proposals => Groups::from_proposals(
-                &masks,
-                &proposals,
-                Orphans::Ignore,
-                MemberWeight::Mass,
-                name,
-            )?,
-            Register::Blend => Groups::blend(
-                &masks,
-                &proposals,
-                Orphans::Ignore,
-                MemberWeight::Mass,
-                name,
-            )?,
-        }
+        let build = match p.registration {
+            Register::Proposals => Groups::from_proposals,
+            Register::Blend => Groups::blend,
+        };
+        build(
+            &masks,
+            &proposals,
+            Orphans::Ignore,
+            MemberWeight::Mass,
+            name,
+        )?
     };
     let scene = Scene::new(&gaussians, &cameras, &masks);
     let load_s = t0.elapsed().as_secs_f64();

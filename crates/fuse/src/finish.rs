@@ -11,7 +11,7 @@ use profuse_formats::{f16, Features, Floats};
 use rayon::prelude::*;
 
 use crate::accumulate::dequantise;
-use crate::groups::{Grouping, NO_GROUP};
+use crate::groups::{Grouping, MemberWeight, NO_GROUP};
 use crate::partial::PartialSums;
 use profuse_formats::NO_PROPOSAL;
 
@@ -160,8 +160,11 @@ pub fn finish(p: &PartialSums, precision: Precision) -> Registration {
         ("views".to_string(), p.views.len().to_string()),
     ]);
     let mut extra = extra;
-    if p.groups.member_weight() == crate::MemberWeight::Share {
-        extra.insert("member_weight".to_string(), "share".to_string());
+    if p.groups.member_weight() == MemberWeight::Share {
+        extra.insert(
+            "member_weight".to_string(),
+            MemberWeight::Share.name().into(),
+        );
     }
     Registration {
         features: Features {

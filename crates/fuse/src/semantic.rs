@@ -15,6 +15,7 @@ use rayon::prelude::*;
 
 use crate::accumulate::dequantise;
 use crate::finish::{descriptor_table, Columns, Precision};
+use crate::groups::MemberWeight;
 use crate::partial::PartialSums;
 
 /// Default `min_share`: a Gaussian has a dominant proposal when that proposal holds at
@@ -110,8 +111,11 @@ fn metadata(p: &PartialSums) -> BTreeMap<String, String> {
         ),
         ("views".to_string(), p.views().len().to_string()),
     ]);
-    if p.groups().member_weight() == crate::MemberWeight::Share {
-        meta.insert("member_weight".to_string(), "share".to_string());
+    if p.groups().member_weight() == MemberWeight::Share {
+        meta.insert(
+            "member_weight".to_string(),
+            MemberWeight::Share.name().into(),
+        );
     }
     meta
 }
