@@ -146,33 +146,13 @@ pub fn finish(p: &PartialSums, precision: Precision) -> Registration {
         }
     };
     let summary = summarise(p, &desc, &valid, t0);
-    let extra = BTreeMap::from([
-        (
-            "generator".to_string(),
-            format!("profuse-fuse {}", env!("CARGO_PKG_VERSION")),
-        ),
-        ("k".to_string(), p.k.to_string()),
-        ("grouping".to_string(), p.groups.grouping.name().to_string()),
-        (
-            "orphans".to_string(),
-            p.groups.grouping.orphans_name().to_string(),
-        ),
-        ("views".to_string(), p.views.len().to_string()),
-    ]);
-    let mut extra = extra;
-    if p.groups.member_weight() == MemberWeight::Share {
-        extra.insert(
-            "member_weight".to_string(),
-            MemberWeight::Share.name().into(),
-        );
-    }
     Registration {
         features: Features {
             features,
             dim: d,
             valid: valid.into(),
             weight_sum: Some(weight_sum.into()),
-            extra,
+            extra: run_metadata(p),
         },
         summary,
     }
@@ -507,6 +487,32 @@ fn blend_table(p: &PartialSums) -> Table {
         rows,
         column: Some(column),
     }
+}
+
+/// The metadata of a registration's outputs (features and semantic index): generator,
+/// k, grouping, orphans, views, and `member_weight = share` when members were weighed by
+/// their shares.
+pub(crate) fn run_metadata(p: &PartialSums) -> BTreeMap<String, String> {
+    let mut meta = BTreeMap::from([
+        (
+            "generator".to_string(),
+            format!("profuse-fuse {}", env!("CARGO_PKG_VERSION")),
+        ),
+        ("k".to_string(), p.k.to_string()),
+        ("grouping".to_string(), p.groups.grouping.name().to_string()),
+        (
+            "orphans".to_string(),
+            p.groups.grouping.orphans_name().to_string(),
+        ),
+        ("views".to_string(), p.views.len().to_string()),
+    ]);
+    if p.groups.member_weight() == MemberWeight::Share {
+        meta.insert(
+            "member_weight".to_string(),
+            MemberWeight::Share.name().into(),
+        );
+    }
+    meta
 }
 
 fn summarise(p: &PartialSums, desc: &Table, valid: &[u8], t0: Instant) -> Summary {

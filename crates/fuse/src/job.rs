@@ -419,22 +419,17 @@ fn job_groups(job: &Job, params: &Params, masks: &Masks) -> Result<Groups> {
     match &job.proposals {
         Some(path) if !params.no_proposals => {
             let proposals = Proposals::read(path)?;
-            match params.registration {
-                Register::Proposals => Groups::from_proposals(
-                    masks,
-                    &proposals,
-                    params.orphans,
-                    params.member_weight,
-                    &name(path),
-                ),
-                Register::Blend => Groups::blend(
-                    masks,
-                    &proposals,
-                    params.orphans,
-                    params.member_weight,
-                    &name(path),
-                ),
-            }
+            let build = match params.registration {
+                Register::Proposals => Groups::from_proposals,
+                Register::Blend => Groups::blend,
+            };
+            build(
+                masks,
+                &proposals,
+                params.orphans,
+                params.member_weight,
+                &name(path),
+            )
         }
         _ => Ok(Groups::per_mask(masks)),
     }

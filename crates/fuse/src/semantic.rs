@@ -7,15 +7,12 @@
 //! proposal matrix is formed, and the extra memory is the output (3 bytes a Gaussian, 2
 //! with `min_share` 0, which omits the share).
 
-use std::collections::BTreeMap;
-
 use half::slice::HalfFloatSliceExt;
 use profuse_formats::{f16, quantise_share, Floats, SemanticIndex};
 use rayon::prelude::*;
 
 use crate::accumulate::dequantise;
-use crate::finish::{descriptor_table, Columns, Precision};
-use crate::groups::MemberWeight;
+use crate::finish::{descriptor_table, run_metadata, Columns, Precision};
 use crate::partial::PartialSums;
 
 /// Default `min_share`: a Gaussian has a dominant proposal when that proposal holds at
@@ -60,7 +57,7 @@ pub fn semantic_index(p: &PartialSums, precision: Precision, min_share: f64) -> 
         // nothing a reader uses, and the index alone is 2 bytes a Gaussian.
         share: (quantise_share(min_share) > 0).then(|| share.into()),
         min_share: quantise_share(min_share),
-        extra: metadata(p),
+        extra: run_metadata(p),
     }
 }
 
@@ -92,30 +89,4 @@ fn stored_table(rows: &[f64], precision: Precision) -> Floats {
             Floats::F16(out.into())
         }
     }
-}
-
-fn metadata(p: &PartialSums) -> BTreeMap<String, String> {
-    let mut meta = BTreeMap::from([
-        (
-            "generator".to_string(),
-            format!("profuse-fuse {}", env!("CARGO_PKG_VERSION")),
-        ),
-        ("k".to_string(), p.k().to_string()),
-        (
-            "grouping".to_string(),
-            p.groups().grouping.name().to_string(),
-        ),
-        (
-            "orphans".to_string(),
-            p.groups().grouping.orphans_name().to_string(),
-        ),
-        ("views".to_string(), p.views().len().to_string()),
-    ]);
-    if p.groups().member_weight() == MemberWeight::Share {
-        meta.insert(
-            "member_weight".to_string(),
-            MemberWeight::Share.name().into(),
-        );
-    }
-    meta
 }
