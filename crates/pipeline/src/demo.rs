@@ -143,19 +143,15 @@ pub fn run_demo(
         .unwrap_or_else(|| std::env::temp_dir().join("profuse-demo"));
     let t0 = Instant::now();
     let synth_config = opts.faults.config(opts.preset, opts.seed);
-    // Regenerate unless the same preset, faults and seed are already there (a rerun is
-    // then fast). The stamp of the demo's own preset and faults is the bare seed.
-    let stamp_text =
-        if (opts.preset, opts.faults) == (synth::Preset::Demo, synth::FaultSet::Default) {
-            opts.seed.to_string()
-        } else {
-            format!(
-                "{} {} {}",
-                opts.seed,
-                opts.preset.name(),
-                opts.faults.name()
-            )
-        };
+    // Regenerate unless the same preset, faults and seed, made by the same synth code, are
+    // already there (a rerun is then fast).
+    let stamp_text = format!(
+        "{} {} {} synth@{}",
+        opts.seed,
+        opts.preset.name(),
+        opts.faults.name(),
+        crate::stage::crate_code("synth").unwrap_or("unknown")
+    );
     let stamp = scene.join(".demo-seed");
     let fresh = std::fs::read_to_string(&stamp).ok().as_deref() == Some(stamp_text.as_str());
     let present = scene.join("cameras.safetensors").is_file()

@@ -12,7 +12,9 @@ use serde_json::{json, Value};
 
 use crate::config::Config;
 use crate::error::{io_err, stage_err, PipelineError, Result};
-use crate::stage::{clear_stamp, fingerprints, needs_run, write_stamp, Stamp, STAMP_VERSION};
+use crate::stage::{
+    clear_stamp, code_identity, fingerprints, needs_run, write_stamp, Stamp, STAMP_VERSION,
+};
 
 /// The class sets of the ScanNet protocol the pipeline labels the mesh for, one
 /// vertex-labels file each (the paper's 19, 15 and 10 NYU40 classes).
@@ -300,6 +302,22 @@ struct Runner<'a> {
     events: &'a (dyn Fn(Event<'_>) + Sync),
 }
 
+/// The workspace crate whose code a stage runs (its completion record holds that crate's
+/// [`code_identity`]); `None` for a name no stage has.
+pub(crate) fn stage_crate(stage: &str) -> Option<&'static str> {
+    Some(match stage.strip_suffix("_baseline").unwrap_or(stage) {
+        "gs-init" => "gs-init",
+        "gs-refine" => "gs-refine",
+        "warp-graph" => "warp-graph",
+        "proposals" => "profuse-formats",
+        "fuse" => "profuse-fuse",
+        "pq" => "profuse-pq",
+        "query" => "profuse-query",
+        "vertex-transfer" => "vertex-transfer",
+        _ => return None,
+    })
+}
+
 /// Runs one stage unless up to date: clears its record, runs `body`, writes the record.
 fn stage(
     r: &Runner<'_>,
@@ -310,10 +328,12 @@ fn stage(
     body: impl FnOnce() -> Result<Value>,
 ) -> Result<StageLine> {
     let (out, force, events) = (r.out, r.force, r.events);
+    // A name without a crate gets the whole pipeline's identity (every crate it runs).
+    let code = code_identity(stage_crate(name).unwrap_or("profuse-pipeline"));
     let reason = if force {
         Some("--force".to_string())
     } else {
-        needs_run(out, name, &params, &inputs, &outputs)
+        needs_run(out, name, &code, &params, &inputs, &outputs)
     };
     let Some(reason) = reason else {
         let seconds = std::fs::read(crate::stage::stamp_path(out, name))
@@ -353,6 +373,7 @@ fn stage(
         version: STAMP_VERSION,
         stage: name.into(),
         params,
+        code,
         inputs,
         outputs: fingerprints(&outputs).map_err(fingerprint_err)?,
         seconds,

@@ -1,8 +1,8 @@
 //! Up-to-date checks and crash-safe completion records for pipeline stages.
 //!
 //! A stage is *done* when its completion record `out/.stamps/<stage>.json` exists, is of
-//! this version ([`STAMP_VERSION`]), records the same parameters as the current run, and
-//! every input and output it lists still has the [`Fingerprint`] recorded: size, inode,
+//! this version ([`STAMP_VERSION`]), records the same parameters and the same code
+//! identity ([`code_identity`]) as the current run, and every input and output it lists still has the [`Fingerprint`] recorded: size, inode,
 //! modification and status-change times of each file (of every file beneath, for a
 //! directory). Any difference makes the stage stale, whatever its direction, so an input
 //! replaced by a file with an *older* modification time (`cp -p`, `rsync -t`, `tar x`) is
@@ -17,8 +17,38 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 /// Version of the completion-record format; a record of another version (or without one:
-/// the mtime-only records before issue 20) makes its stage run again.
-pub const STAMP_VERSION: u32 = 2;
+/// the mtime-only records before issue 20; version 2 had no code identity) makes its stage
+/// run again.
+pub const STAMP_VERSION: u32 = 3;
+
+mod generated {
+    include!(concat!(env!("OUT_DIR"), "/code_identity.rs"));
+}
+
+/// The code identity of a workspace crate the pipeline runs (see `build.rs`: the hash of
+/// the crate's manifest and sources, of those of the workspace crates it depends on, and
+/// of the workspace's `Cargo.lock`); `None` for a crate it does not run.
+pub fn crate_code(krate: &str) -> Option<&'static str> {
+    generated::CRATE_CODE
+        .iter()
+        .find(|(name, _)| *name == krate)
+        .map(|(_, id)| *id)
+}
+
+/// The identity of the code a stage runs, as `CRATE@HEX+profuse-pipeline@HEX`: its crate's
+/// [`crate_code`] and the pipeline's own sources (which call it). A crate the pipeline does
+/// not run gets the identity of the whole pipeline (every crate it runs), which no edit
+/// escapes.
+pub fn code_identity(krate: &str) -> String {
+    let (name, id) = match crate_code(krate) {
+        Some(id) => (krate, id),
+        None => (
+            "profuse-pipeline",
+            crate_code("profuse-pipeline").unwrap_or("unknown"),
+        ),
+    };
+    format!("{name}@{id}+profuse-pipeline@{}", generated::GLUE_CODE)
+}
 
 /// What a completion record holds (README "Up-to-date rules" documents the JSON).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -30,6 +60,9 @@ pub struct Stamp {
     pub stage: String,
     /// The stage's effective parameters (any JSON value), compared on the next run.
     pub params: serde_json::Value,
+    /// The identity of the code that ran ([`code_identity`]), compared on the next run.
+    #[serde(default)]
+    pub code: String,
     /// Input files and directories, as they were when the stage started.
     pub inputs: Vec<Fingerprint>,
     /// Output files and directories, as the stage left them.
@@ -192,6 +225,7 @@ fn first_change(recorded: &[Fingerprint], paths: &[PathBuf], role: &str) -> Opti
 pub fn needs_run(
     out_dir: &Path,
     stage: &str,
+    code: &str,
     params: &serde_json::Value,
     inputs: &[PathBuf],
     outputs: &[PathBuf],
@@ -207,6 +241,9 @@ pub fn needs_run(
     }
     if &stamp.params != params {
         return Some("parameters changed".into());
+    }
+    if stamp.code != code {
+        return Some("its code changed (another build)".into());
     }
     if let Some(why) = first_change(&stamp.outputs, outputs, "output") {
         return Some(if why.ends_with("is missing") {

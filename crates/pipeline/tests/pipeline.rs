@@ -324,7 +324,7 @@ fn an_input_replaced_by_an_older_file_makes_its_stages_stale() {
     let record: serde_json::Value =
         serde_json::from_slice(&std::fs::read(s.out.join(".stamps/warp-graph.json")).unwrap())
             .unwrap();
-    assert_eq!(record["version"], 2);
+    assert_eq!(record["version"], 3);
     let first = &record["inputs"][0];
     assert_eq!(first["path"], masks.to_string_lossy().as_ref());
     assert_eq!(first["kind"], "file");
@@ -332,6 +332,75 @@ fn an_input_replaced_by_an_older_file_makes_its_stages_stale() {
     for key in ["inode", "mtime_ns", "ctime_ns"] {
         assert!(first[key].as_u64().is_some_and(|v| v > 0), "{key}: {first}");
     }
+}
+
+/// A record made by other code (another build: an edited crate, another `Cargo.lock`)
+/// makes its stage and what depends on it run again, even with the same parameters and
+/// untouched files; each record names the crate its stage runs. The old records (version
+/// 2, without a code identity) are stale too.
+#[test]
+fn a_record_of_other_code_makes_its_stage_stale() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let cfg = tiny_config();
+    let opts = RunOptions::default();
+    let first = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    let features = std::fs::read(first.out.join("features.safetensors")).unwrap();
+    let stamp_of = |stage: &str| first.out.join(format!(".stamps/{stage}.json"));
+    let read = |stage: &str| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(stamp_of(stage)).unwrap()).unwrap()
+    };
+
+    let mut identities = std::collections::BTreeSet::new();
+    for (stage, krate) in [
+        ("gs-init", "gs-init"),
+        ("warp-graph", "warp-graph"),
+        ("fuse", "profuse-fuse"),
+        ("pq", "profuse-pq"),
+        ("query", "profuse-query"),
+    ] {
+        let code = read(stage)["code"].as_str().unwrap().to_string();
+        let want = profuse_pipeline::stage::crate_code(krate).unwrap();
+        assert!(
+            code.starts_with(&format!("{krate}@{want}+profuse-pipeline@")),
+            "{stage}: {code}"
+        );
+        assert_eq!(code, profuse_pipeline::stage::code_identity(krate));
+        identities.insert(want);
+    }
+    assert_eq!(identities.len(), 5, "{identities:?}");
+
+    // warp-graph's record as another build would have left it.
+    let mut record = read("warp-graph");
+    record["code"] = "warp-graph@0000000000000000+profuse-pipeline@0000000000000000".into();
+    std::fs::write(stamp_of("warp-graph"), serde_json::to_vec(&record).unwrap()).unwrap();
+    let s = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    let r = ran(&s);
+    assert_eq!(r[0], ("gs-init", false));
+    assert_eq!(r[1], ("warp-graph", true));
+    assert!(
+        s.stages[1].reason.contains("code changed"),
+        "{}",
+        s.stages[1].reason
+    );
+    // warp-graph rewrote its output, so fuse and the rest follow; the bytes are the same.
+    assert!(r[2..].iter().all(|(_, ran)| *ran), "{r:?}");
+    assert_eq!(
+        std::fs::read(first.out.join("features.safetensors")).unwrap(),
+        features
+    );
+
+    // A record of the previous format (version 2, no code identity) reruns its stage.
+    let mut record = read("pq");
+    record["version"] = 2.into();
+    record.as_object_mut().unwrap().remove("code");
+    std::fs::write(stamp_of("pq"), serde_json::to_vec(&record).unwrap()).unwrap();
+    let s = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    let r = ran(&s);
+    assert!(
+        r.contains(&("pq", true)) && r.contains(&("fuse", false)),
+        "{r:?}"
+    );
 }
 
 /// Issue 20 item 7: a run on an output directory that another run holds fails at once

@@ -180,7 +180,8 @@ def view_pair_count(plan: Plan, probe: str) -> int:
 
 def _stage_key(plan: Plan, stages: list) -> str:
     """Hash of what shards depend on: the completion records of `stages` (their inputs',
-    outputs' and parameters' fingerprints) and the configuration arguments."""
+    outputs' and parameters' fingerprints and the code identity) and the configuration
+    arguments."""
     h = hashlib.sha256()
     for stage in stages:
         p = plan.out / ".stamps" / f"{stage}.json"
