@@ -47,6 +47,8 @@ pub mod config;
 pub mod demo;
 mod error;
 pub mod evaluate;
+#[cfg(test)]
+mod identity;
 mod run;
 pub mod stage;
 pub mod sweep;
