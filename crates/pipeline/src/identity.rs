@@ -7,51 +7,14 @@
 //! and the workspace's `Cargo.lock`.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-/// FNV-1a 64: not cryptographic; it tells edits apart, nobody forges them.
-#[derive(Clone, Copy)]
-pub struct Fnv(pub u64);
+use crate::fnv::{files_beneath, Fnv};
 
-impl Fnv {
-    pub fn new() -> Self {
-        Self(0xcbf2_9ce4_8422_2325)
-    }
-
-    /// Hashes `bytes` and their length (so that concatenations of different pieces
-    /// differ).
-    pub fn bytes(mut self, bytes: &[u8]) -> Self {
-        for &b in bytes.iter().chain(&(bytes.len() as u64).to_le_bytes()) {
-            self.0 ^= u64::from(b);
-            self.0 = self.0.wrapping_mul(0x0100_0000_01b3);
-        }
-        self
-    }
-}
-
-/// Every file beneath `dir`, as (path relative to `dir` with `/` separators, path), sorted.
-fn files_beneath(dir: &Path) -> Vec<(String, PathBuf)> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        let Ok(entries) = std::fs::read_dir(&d) else {
-            continue;
-        };
-        for entry in entries.flatten() {
-            let path = entry.path();
-            if path.is_dir() {
-                stack.push(path);
-            } else if let Ok(rel) = path.strip_prefix(dir) {
-                let rel: Vec<String> = rel
-                    .components()
-                    .map(|c| c.as_os_str().to_string_lossy().into_owned())
-                    .collect();
-                out.push((rel.join("/"), path));
-            }
-        }
-    }
-    out.sort();
-    out
+/// Hashes `bytes` and then their length (8 bytes, little-endian), so that concatenations
+/// of different pieces differ.
+fn piece(h: Fnv, bytes: &[u8]) -> Fnv {
+    h.bytes(bytes).bytes(&(bytes.len() as u64).to_le_bytes())
 }
 
 /// The hash of a crate's own `Cargo.toml` and `src/`; `watch` is told both paths (cargo's
@@ -61,11 +24,10 @@ pub fn own_sources(dir: &Path, watch: &mut dyn FnMut(&Path)) -> Fnv {
     let src = dir.join("src");
     watch(&manifest);
     watch(&src);
-    let mut h = Fnv::new().bytes(&std::fs::read(&manifest).unwrap_or_default());
-    for (rel, path) in files_beneath(&src) {
-        h = h
-            .bytes(rel.as_bytes())
-            .bytes(&std::fs::read(&path).unwrap_or_default());
+    let mut h = piece(Fnv::new(), &std::fs::read(&manifest).unwrap_or_default());
+    for (rel, path) in files_beneath(&src).unwrap_or_default() {
+        h = piece(h, rel.as_os_str().as_encoded_bytes());
+        h = piece(h, &std::fs::read(&path).unwrap_or_default());
     }
     h
 }
@@ -124,10 +86,10 @@ impl Workspace<'_> {
             return 0;
         };
         let dir = self.root.join(rel);
-        let mut h = own_sources(&dir, watch).bytes(&self.lock.0.to_le_bytes());
+        let mut h = piece(own_sources(&dir, watch), &self.lock.0.to_le_bytes());
         for dep in workspace_dependencies(&dir, &self.crates) {
             let id = self.identity(&dep, watch);
-            h = h.bytes(dep.as_bytes()).bytes(&id.to_le_bytes());
+            h = piece(piece(h, dep.as_bytes()), &id.to_le_bytes());
         }
         self.done.insert(name.to_string(), h.0);
         h.0
@@ -151,7 +113,10 @@ pub fn workspace_identities(
     }
     watch(&root.join("Cargo.toml"));
     watch(&root.join("Cargo.lock"));
-    let lock = Fnv::new().bytes(&std::fs::read(root.join("Cargo.lock")).unwrap_or_default());
+    let lock = piece(
+        Fnv::new(),
+        &std::fs::read(root.join("Cargo.lock")).unwrap_or_default(),
+    );
     let mut ws = Workspace {
         root,
         crates,
@@ -217,12 +182,13 @@ mod tests {
         assert_eq!(ids(dir.path()), before, "deterministic");
 
         // The leaf's identity by hand: manifest, its one source file, the lock.
-        let lock = Fnv::new().bytes(b"# lock v1\n");
-        let leaf = Fnv::new()
-            .bytes(b"[package]\nname = \"leaf\"\n[dev-dependencies]\napp.workspace = true\n")
-            .bytes(b"lib.rs")
-            .bytes(b"pub fn leaf() {}\n")
-            .bytes(&lock.0.to_le_bytes());
+        let lock = piece(Fnv::new(), b"# lock v1\n");
+        let mut leaf = piece(
+            Fnv::new(),
+            b"[package]\nname = \"leaf\"\n[dev-dependencies]\napp.workspace = true\n",
+        );
+        leaf = piece(piece(leaf, b"lib.rs"), b"pub fn leaf() {}\n");
+        leaf = piece(leaf, &lock.0.to_le_bytes());
         assert_eq!(before["leaf"], leaf.0);
 
         // A file deep in mid's src/: mid and app change, leaf does not.

@@ -47,6 +47,7 @@ pub mod config;
 pub mod demo;
 mod error;
 pub mod evaluate;
+mod fnv;
 #[cfg(test)]
 mod identity;
 mod run;

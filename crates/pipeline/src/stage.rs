@@ -16,6 +16,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::fnv::Fnv;
+
 /// Version of the completion-record format; a record of another version (or without one:
 /// the mtime-only records before issue 20; version 2 had no code identity) makes its stage
 /// run again.
@@ -117,35 +119,6 @@ fn identity(meta: &std::fs::Metadata) -> (u64, u64, i128, i128) {
     }
 }
 
-/// Every file beneath `dir` (symbolic links followed for files, not for directories)
-/// with its path relative to `dir`, sorted.
-fn files_beneath(dir: &Path) -> std::io::Result<Vec<(PathBuf, std::fs::Metadata)>> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for entry in std::fs::read_dir(&d)? {
-            let entry = entry?;
-            let path = entry.path();
-            if entry.file_type()?.is_dir() {
-                stack.push(path);
-            } else {
-                let meta = std::fs::metadata(&path)?;
-                let rel = path.strip_prefix(dir).unwrap_or(&path).to_path_buf();
-                out.push((rel, meta));
-            }
-        }
-    }
-    out.sort_by(|a, b| a.0.as_os_str().cmp(b.0.as_os_str()));
-    Ok(out)
-}
-
-fn fnv1a(hash: &mut u64, bytes: &[u8]) {
-    for &b in bytes {
-        *hash ^= u64::from(b);
-        *hash = hash.wrapping_mul(0x0100_0000_01b3);
-    }
-}
-
 /// The fingerprint of a file or directory; an error when it does not exist.
 pub fn fingerprint(path: &Path) -> std::io::Result<Fingerprint> {
     let meta = std::fs::metadata(path)?;
@@ -162,17 +135,15 @@ pub fn fingerprint(path: &Path) -> std::io::Result<Fingerprint> {
             digest: String::new(),
         });
     }
-    let files = files_beneath(path)?;
-    let mut hash = 0xcbf2_9ce4_8422_2325u64;
+    let files = crate::fnv::files_beneath(path)?;
+    let mut hash = Fnv::new();
     let mut total = 0u64;
-    for (rel, meta) in &files {
-        let (size, inode, mtime, ctime) = identity(meta);
+    for (rel, full) in &files {
+        let (size, inode, mtime, ctime) = identity(&std::fs::metadata(full)?);
         total += size;
-        fnv1a(&mut hash, rel.as_os_str().as_encoded_bytes());
-        fnv1a(
-            &mut hash,
-            format!("\0{size} {inode} {mtime} {ctime}\0").as_bytes(),
-        );
+        hash = hash
+            .bytes(rel.as_os_str().as_encoded_bytes())
+            .bytes(format!("\0{size} {inode} {mtime} {ctime}\0").as_bytes());
     }
     Ok(Fingerprint {
         path: shown,
@@ -181,7 +152,7 @@ pub fn fingerprint(path: &Path) -> std::io::Result<Fingerprint> {
         inode: files.len() as u64,
         mtime_ns: 0,
         ctime_ns: 0,
-        digest: format!("{hash:016x}"),
+        digest: format!("{:016x}", hash.0),
     })
 }
 
