@@ -116,6 +116,48 @@ pub struct ClassRow {
     pub pred_count: u64,
     /// Vertices of this class predicted correctly (TP).
     pub correct: u64,
+    /// The false positives by ground-truth class: evaluated vertices of another class of
+    /// the set predicted as this one (FP_c split by g), most first (ties: smaller id),
+    /// non-zero counts only. Their counts sum to `pred_count − correct`.
+    pub false_positives: Vec<Confusion>,
+    /// The misses by prediction: this class's vertices predicted as another class of the
+    /// set, or (id −1, name `none`) with no label or a label outside the set (FN_c split
+    /// by p), most first (ties: smaller id), non-zero only. Their counts sum to
+    /// `gt_count − correct`.
+    pub missed_as: Vec<Confusion>,
+}
+
+/// One cell of the confusion between two classes (see [`ClassRow::false_positives`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct Confusion {
+    /// NYU40 id; −1 for no label or one outside the set.
+    pub id: i32,
+    /// NYU40 name (`none` for −1).
+    pub name: &'static str,
+    /// Vertices.
+    pub count: u64,
+}
+
+/// The non-zero `(slot, count)` cells as [`Confusion`]s, most first, ties by id; slot
+/// `ids.len()` is "none".
+fn confusions(cells: impl Iterator<Item = (usize, u64)>, ids: &[u32]) -> Vec<Confusion> {
+    let mut out: Vec<Confusion> = cells
+        .filter(|&(_, n)| n > 0)
+        .map(|(k, count)| match ids.get(k) {
+            Some(&id) => Confusion {
+                id: id as i32,
+                name: class_name(id).unwrap_or("?"),
+                count,
+            },
+            None => Confusion {
+                id: -1,
+                name: "none",
+                count,
+            },
+        })
+        .collect();
+    out.sort_by(|a, b| b.count.cmp(&a.count).then(a.id.cmp(&b.id)));
+    out
 }
 
 /// Scores of one scene under one class set.
@@ -162,6 +204,10 @@ fn percent(num: u64, den: u64) -> f64 {
 /// // wall 1/2, floor 1/2 (one false positive), chair 0/1
 /// assert!((s.miou - 100.0 / 3.0).abs() < 1e-9);
 /// assert!((s.macc - 50.0).abs() < 1e-9);
+/// // The floor's false positive is a wall vertex; the chair was missed with no label.
+/// let (wall, floor, chair) = (&s.per_class[0], &s.per_class[1], &s.per_class[3]);
+/// assert_eq!((floor.false_positives[0].name, floor.false_positives[0].count), ("wall", 1));
+/// assert_eq!((wall.missed_as[0].name, chair.missed_as[0].id), ("floor", -1));
 /// ```
 pub fn evaluate(pred: &[i32], truth: &[u32], set: ClassSet) -> Result<ScannetScores> {
     if pred.len() != truth.len() {
@@ -185,28 +231,23 @@ pub fn evaluate(pred: &[i32], truth: &[u32], set: ClassSet) -> Result<ScannetSco
             .and_then(|i| slot.get(i).copied())
             .filter(|&k| k != usize::MAX)
     };
-    let (mut gt, mut predicted, mut correct) = (
-        vec![0u64; ids.len()],
-        vec![0u64; ids.len()],
-        vec![0u64; ids.len()],
-    );
-    let (mut evaluated, mut outside) = (0u64, 0u64);
+    let c = ids.len();
+    // confusion[g][p]: ground-truth slot g, predicted slot p (slot c: none or outside).
+    let mut confusion = vec![vec![0u64; c + 1]; c];
+    let mut evaluated = 0u64;
     for (&p, &g) in pred.iter().zip(truth) {
         let Some(gk) = slot_of(i64::from(g)) else {
             continue;
         };
         evaluated += 1;
-        gt[gk] += 1;
-        match slot_of(i64::from(p)) {
-            Some(pk) => {
-                predicted[pk] += 1;
-                if pk == gk {
-                    correct[gk] += 1;
-                }
-            }
-            None => outside += 1,
-        }
+        confusion[gk][slot_of(i64::from(p)).unwrap_or(c)] += 1;
     }
+    let gt: Vec<u64> = confusion.iter().map(|row| row.iter().sum()).collect();
+    let predicted: Vec<u64> = (0..c)
+        .map(|k| confusion.iter().map(|row| row[k]).sum())
+        .collect();
+    let correct: Vec<u64> = (0..c).map(|k| confusion[k][k]).collect();
+    let outside: u64 = confusion.iter().map(|row| row[c]).sum();
     let per_class: Vec<ClassRow> = ids
         .iter()
         .enumerate()
@@ -218,6 +259,14 @@ pub fn evaluate(pred: &[i32], truth: &[u32], set: ClassSet) -> Result<ScannetSco
             gt_count: gt[k],
             pred_count: predicted[k],
             correct: correct[k],
+            false_positives: confusions(
+                (0..c).filter(|&g| g != k).map(|g| (g, confusion[g][k])),
+                ids,
+            ),
+            missed_as: confusions(
+                (0..=c).filter(|&p| p != k).map(|p| (p, confusion[k][p])),
+                ids,
+            ),
         })
         .collect();
     let present: Vec<&ClassRow> = per_class.iter().filter(|r| r.gt_count > 0).collect();

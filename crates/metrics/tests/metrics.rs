@@ -915,6 +915,50 @@ mod scannet {
                         accs.push(tp as f64 / (tp + fn_) as f64);
                     }
                 }
+                // The confusion lists against a brute-force count of every cell.
+                let evald = |i: usize| ids.contains(&truth[i]);
+                let as_slot = |p: i32| {
+                    u32::try_from(p)
+                        .ok()
+                        .filter(|p| ids.contains(p))
+                        .map_or(-1, |p| p as i32)
+                };
+                for row in &s.per_class {
+                    let c = row.id;
+                    let mut fp = std::collections::BTreeMap::<i32, u64>::new();
+                    let mut missed = std::collections::BTreeMap::<i32, u64>::new();
+                    for i in (0..n).filter(|&i| evald(i)) {
+                        let p = as_slot(pred[i]);
+                        if p == c as i32 && truth[i] != c {
+                            *fp.entry(truth[i] as i32).or_default() += 1;
+                        }
+                        if truth[i] == c && p != c as i32 {
+                            *missed.entry(p).or_default() += 1;
+                        }
+                    }
+                    let got = |l: &[profuse_metrics::scannet::Confusion]| {
+                        let mut v: Vec<(i32, u64)> = l.iter().map(|x| (x.id, x.count)).collect();
+                        // Listed most first, ties by id.
+                        assert!(l.windows(2).all(|w| w[0].count > w[1].count
+                            || (w[0].count == w[1].count && w[0].id < w[1].id)));
+                        v.sort_unstable();
+                        v
+                    };
+                    assert_eq!(
+                        got(&row.false_positives),
+                        fp.into_iter().collect::<Vec<_>>()
+                    );
+                    assert_eq!(got(&row.missed_as), missed.into_iter().collect::<Vec<_>>());
+                    let sum = |l: &[profuse_metrics::scannet::Confusion]| {
+                        l.iter().map(|x| x.count).sum::<u64>()
+                    };
+                    assert_eq!(sum(&row.false_positives), row.pred_count - row.correct);
+                    assert_eq!(sum(&row.missed_as), row.gt_count - row.correct);
+                    assert!(row
+                        .missed_as
+                        .iter()
+                        .all(|x| (x.id == -1) == (x.name == "none")));
+                }
                 assert_eq!(s.classes_present, ious.len());
                 if !ious.is_empty() {
                     let miou = 100.0 * ious.iter().sum::<f64>() / ious.len() as f64;
