@@ -14,9 +14,9 @@
 //! * **Up-to-date checks without trusting partial work.** Each stage writes a completion
 //!   record after its outputs are in place; a stage is skipped only when that record
 //!   holds the same parameters, the same code identity and the fingerprints its inputs
-//!   and outputs still have ([`stage`]). Outputs are
-//!   written atomically, multi-file outputs through a temporary directory, so a run killed
-//!   midway is redone from the interrupted stage.
+//!   and outputs still have ([`stage`]). Outputs are written atomically, multi-file
+//!   outputs through a temporary directory, so a run killed midway is redone from the
+//!   interrupted stage.
 //! * **One configuration** ([`config::Config`]): every parameter of every stage with the
 //!   paper's values as defaults, from TOML and `section.key=value` overrides; the
 //!   effective configuration is written as `out/config.toml`.

@@ -2,15 +2,16 @@
 //!
 //! A stage is *done* when its completion record `out/.stamps/<stage>.json` exists, is of
 //! this version ([`STAMP_VERSION`]), records the same parameters and the same code
-//! identity ([`code_identity`]) as the current run, and every input and output it lists still has the [`Fingerprint`] recorded: size, inode,
-//! modification and status-change times of each file (of every file beneath, for a
-//! directory). Any difference makes the stage stale, whatever its direction, so an input
-//! replaced by a file with an *older* modification time (`cp -p`, `rsync -t`, `tar x`) is
-//! noticed (through its inode or status-change time, which no copy preserves). The
-//! record is written last, after every output has been renamed into place, so a stage
-//! killed midway leaves no record: a later run redoes it instead of trusting a partial
-//! result. Single-file outputs are already atomic (temp file + rename); stages with many
-//! files write them into a temporary directory swapped in at the end.
+//! identity ([`code_identity`]) as the current run, and every input and output it lists
+//! still has the [`Fingerprint`] recorded: size, inode, modification and status-change
+//! times of each file (of every file beneath, for a directory). Any difference makes the
+//! stage stale, whatever its direction, so an input replaced by a file with an *older*
+//! modification time (`cp -p`, `rsync -t`, `tar x`) is noticed (through its inode or
+//! status-change time, which no copy preserves). The record is written last, after every
+//! output has been renamed into place, so a stage killed midway leaves no record: a later
+//! run redoes it instead of trusting a partial result. Single-file outputs are already
+//! atomic (temp file + rename); stages with many files write them into a temporary
+//! directory swapped in at the end.
 
 use std::path::{Path, PathBuf};
 
