@@ -50,6 +50,16 @@ fn tiny_with(seed: u64, gaussians: usize, change: impl FnOnce(&mut synth::Config
     }
 }
 
+/// Proposal groups weighing members by their shares (the default), named `p` in errors.
+fn share_groups(masks: &Masks, proposals: &Proposals, orphans: Orphans) -> Groups {
+    Groups::from_proposals(masks, proposals, orphans, MemberWeight::Share, "p").unwrap()
+}
+
+/// [`Groups::blend`] weighing members by their shares (the default).
+fn share_blend(masks: &Masks, proposals: &Proposals, orphans: Orphans) -> Groups {
+    Groups::blend(masks, proposals, orphans, MemberWeight::Share, "p").unwrap()
+}
+
 impl Fixture {
     fn proposals(&self, min_members: usize) -> Proposals {
         profuse_fuse::testing::proposals_from_mask_objects(
@@ -80,37 +90,16 @@ impl Fixture {
     }
 
     fn groups_with_orphans(&self, orphans: Orphans) -> Groups {
-        Groups::from_proposals(
-            &self.masks,
-            &self.proposals_without_first(),
-            orphans,
-            MemberWeight::Share,
-            "p",
-        )
-        .unwrap()
+        share_groups(&self.masks, &self.proposals_without_first(), orphans)
     }
 
     fn groups(&self, min_members: usize, orphans: Orphans) -> Groups {
-        Groups::from_proposals(
-            &self.masks,
-            &self.proposals(min_members),
-            orphans,
-            MemberWeight::Share,
-            "p",
-        )
-        .unwrap()
+        share_groups(&self.masks, &self.proposals(min_members), orphans)
     }
 
     /// The blend over the proposals of [`Fixture::proposals_without_first`].
     fn blend_groups(&self, orphans: Orphans) -> Groups {
-        Groups::blend(
-            &self.masks,
-            &self.proposals_without_first(),
-            orphans,
-            MemberWeight::Share,
-            "p",
-        )
-        .unwrap()
+        share_blend(&self.masks, &self.proposals_without_first(), orphans)
     }
 
     fn scene(&self) -> Scene<'_> {
@@ -610,14 +599,7 @@ fn blend_matches_the_brute_force_reference() {
         assert_eq!(reg.features.extra["orphans"], orphans.name());
         // The blend is not trivial here: some masks keep their proposal's descriptor,
         // others get a mix.
-        let paper = Groups::from_proposals(
-            &fx.masks,
-            &fx.proposals_without_first(),
-            orphans,
-            MemberWeight::Share,
-            "p",
-        )
-        .unwrap();
+        let paper = share_groups(&fx.masks, &fx.proposals_without_first(), orphans);
         let pooled = registered_mask_descriptors(
             &accumulate(&fx.scene(), &paper, k, 0..4, &mut |_| {}).unwrap(),
         );
@@ -668,8 +650,8 @@ fn coherent_proposals_blend_to_the_paper_bytes() {
     let masks = with_features(&fx.masks, features);
     let scene = Scene::new(&fx.gaussians, &fx.cameras, &masks);
     for orphans in [Orphans::Ignore, Orphans::Singleton] {
-        let paper = Groups::from_proposals(&masks, &p, orphans, MemberWeight::Share, "p").unwrap();
-        let blend = Groups::blend(&masks, &p, orphans, MemberWeight::Share, "p").unwrap();
+        let paper = share_groups(&masks, &p, orphans);
+        let blend = share_blend(&masks, &p, orphans);
         let a = fuse(&scene, &paper, &f32_opts()).unwrap();
         let b = fuse(&scene, &blend, &f32_opts()).unwrap();
         assert_eq!(a.features.features, b.features.features, "{orphans:?}");
@@ -686,14 +668,7 @@ fn coherent_proposals_blend_to_the_paper_bytes() {
 fn a_mask_orthogonal_to_its_proposal_keeps_its_own_feature() {
     let fx = tiny(7, 2000);
     let (d, m_count) = (fx.masks.dim, fx.masks.num_masks());
-    let groups = Groups::blend(
-        &fx.masks,
-        &fx.proposals(1),
-        Orphans::Ignore,
-        MemberWeight::Share,
-        "p",
-    )
-    .unwrap();
+    let groups = share_blend(&fx.masks, &fx.proposals(1), Orphans::Ignore);
     let scene = fx.scene();
     // Masses do not depend on the features: take them from one pass.
     let mass: Vec<f64> = accumulate(&scene, &groups, 10, 0..4, &mut |_| {})
@@ -749,14 +724,7 @@ fn a_mask_orthogonal_to_its_proposal_keeps_its_own_feature() {
     );
     // The other members are more coherent than average: they keep f̄_P.
     let desc = profuse_fuse::group_descriptors(&partial);
-    let paper = Groups::from_proposals(
-        &masks,
-        &fx.proposals(1),
-        Orphans::Ignore,
-        MemberWeight::Share,
-        "p",
-    )
-    .unwrap();
+    let paper = share_groups(&masks, &fx.proposals(1), Orphans::Ignore);
     let paper_desc =
         registered_mask_descriptors(&accumulate(&scene, &paper, 10, 0..4, &mut |_| {}).unwrap());
     let other = members
@@ -841,8 +809,7 @@ fn an_impure_proposal_does_not_poison_its_minority_under_blend() {
         .map(|e| e["class_id"].as_i64())
         .collect();
     let p = fx.proposals(1);
-    let groups =
-        Groups::from_proposals(&fx.masks, &p, Orphans::Ignore, MemberWeight::Share, "p").unwrap();
+    let groups = share_groups(&fx.masks, &p, Orphans::Ignore);
     let mass: Vec<f64> = accumulate(&fx.scene(), &groups, 10, 0..4, &mut |_| {})
         .unwrap()
         .mask_mass()
@@ -931,22 +898,8 @@ fn an_impure_proposal_does_not_poison_its_minority_under_blend() {
         assert!(total > 20, "{total} Gaussians of B");
         (masks_b, right as f64 / total as f64)
     };
-    let paper = Groups::from_proposals(
-        &fx.masks,
-        &impure,
-        Orphans::Ignore,
-        MemberWeight::Share,
-        "p",
-    )
-    .unwrap();
-    let blend = Groups::blend(
-        &fx.masks,
-        &impure,
-        Orphans::Ignore,
-        MemberWeight::Share,
-        "p",
-    )
-    .unwrap();
+    let paper = share_groups(&fx.masks, &impure, Orphans::Ignore);
+    let blend = share_blend(&fx.masks, &impure, Orphans::Ignore);
     let (paper_masks, paper_gaussians) = run(&paper);
     let (blend_masks, blend_gaussians) = run(&blend);
     let n = b_masks.len();
@@ -1252,14 +1205,7 @@ fn accumulator_size_is_independent_of_the_number_of_views() {
             .into(),
         ..p.clone()
     };
-    let groups = Groups::from_proposals(
-        &masks,
-        &proposals,
-        Orphans::Ignore,
-        MemberWeight::Share,
-        "p",
-    )
-    .unwrap();
+    let groups = share_groups(&masks, &proposals, Orphans::Ignore);
     let scene = Scene::new(&fx.gaussians, &cameras, &masks);
     let mut reports = Vec::new();
     let doubled = accumulate(&scene, &groups, 10, 0..2 * v, &mut |r| reports.push(*r)).unwrap();
