@@ -322,16 +322,22 @@ fn finish_report(
     report
 }
 
-/// Checks the scene, that the groups cover its masks and that `views` is a non-empty range
-/// of its views.
-fn check_job(scene: &Scene<'_>, groups: &Groups, views: &Range<usize>) -> Result<()> {
-    scene.check()?;
+/// That the groups cover the scene's masks ([`Groups::check`]), as a typed error naming
+/// the masks file.
+fn check_groups(scene: &Scene<'_>, groups: &Groups) -> Result<()> {
     groups
         .check(scene.masks.num_masks())
         .map_err(|detail| FuseError::BadGrouping {
             masks: scene.names.masks.clone(),
             detail,
-        })?;
+        })
+}
+
+/// Checks the scene, that the groups cover its masks and that `views` is a non-empty range
+/// of its views.
+fn check_job(scene: &Scene<'_>, groups: &Groups, views: &Range<usize>) -> Result<()> {
+    scene.check()?;
+    check_groups(scene, groups)?;
     let num_views = scene.cameras.len();
     if views.start >= views.end || views.end > num_views {
         return Err(FuseError::ViewRange {
@@ -504,12 +510,6 @@ pub fn pooled_descriptor(
 ) -> Result<Option<Vec<f32>>> {
     let masks = scene.masks;
     let num_masks = masks.num_masks();
-    if let Some(s) = shares.filter(|s| s.len() != num_masks) {
-        return Err(FuseError::BadGrouping {
-            masks: scene.names.masks.clone(),
-            detail: format!("{} member shares for {num_masks} masks", s.len()),
-        });
-    }
     let mut mask_group = vec![NO_GROUP; num_masks];
     for &m in members {
         let slot = mask_group
@@ -529,6 +529,9 @@ pub fn pooled_descriptor(
         mask_proposal: Vec::new(),
         mask_share: shares.map(<[f32]>::to_vec).unwrap_or_default(),
     };
+    // The check every registration runs (shares one per mask), here also when no view is
+    // rendered (no members).
+    check_groups(scene, &groups)?;
     scene.check()?;
     let mut views: Vec<usize> = members.iter().map(|&m| masks.view_of(m as usize)).collect();
     views.sort_unstable();
