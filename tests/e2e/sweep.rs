@@ -176,8 +176,8 @@ fn check_means(m: &Value, rows: &[&Value]) {
 }
 
 /// 2 seeds x 2 fault sets on the tiny preset: every key, rows in (faults, seed) order,
-/// each row equal to a separate `profuse demo` of the same scene, means equal to the means
-/// of the rows.
+/// each row equal to a separate `profuse demo` of the same scene (the one compared took
+/// its Gaussians from an earlier row), means equal to the means of the rows.
 #[test]
 fn sweep_rows_equal_separate_demo_runs_and_the_summary_averages_them() {
     let dir = tempfile::tempdir().unwrap();
@@ -220,6 +220,12 @@ fn sweep_rows_equal_separate_demo_runs_and_the_summary_averages_them() {
             (2, "harsh-segmentation")
         ]
     );
+    // harsh-segmentation changes masks only: its rows take the default rows' Gaussians.
+    let reused: Vec<bool> = rows
+        .iter()
+        .map(|r| r["geometry_reused"].as_bool().unwrap())
+        .collect();
+    assert_eq!(reused, [false, false, true, true]);
     for r in &rows {
         for k in ROW_KEYS {
             assert!(r.get(k).is_some_and(|v| !v.is_null()), "row lacks {k}: {r}");

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use profuse_formats::{Cameras, FileKind, Masks, Proposals};
+use profuse_formats::{Cameras, FileKind, Gaussians, Masks, Proposals};
 use profuse_metrics::scannet::ClassSet;
 use serde::Serialize;
 use serde_json::{json, Value};
@@ -31,6 +31,10 @@ pub struct RunOptions {
     /// of running warp-graph: the `proposals` stage validates it against the masks and
     /// copies it to `out/proposals.safetensors`.
     pub proposals: Option<PathBuf>,
+    /// Use this Gaussians file (e.g. a trained splat, or the geometry of another run of
+    /// the same photos) instead of running gs-init and gs-refine: the `gaussians` stage
+    /// validates it and copies its bytes to `out/gaussians.safetensors`.
+    pub gaussians: Option<PathBuf>,
     /// When another run holds the output directory's lock, wait for it instead of
     /// failing with [`PipelineError::Output`] (`OutputError::Locked`).
     pub wait: bool,
@@ -309,7 +313,7 @@ pub(crate) fn stage_crate(stage: &str) -> Option<&'static str> {
         "gs-init" => "gs-init",
         "gs-refine" => "gs-refine",
         "warp-graph" => "warp-graph",
-        "proposals" => "profuse-formats",
+        "proposals" | "gaussians" => "profuse-formats",
         "fuse" => "profuse-fuse",
         "pq" => "profuse-pq",
         "query" => "profuse-query",
@@ -458,12 +462,16 @@ fn run_stages(
     lines: &mut Vec<StageLine>,
 ) -> Result<Option<RegisteredMasks>> {
     let stop_after = |stage: StageName| opts.until.is_some_and(|u| u <= stage);
-    lines.push(gs_init_stage(runner, config, p)?);
-    if stop_after(StageName::GsInit) {
-        return Ok(None);
-    }
-    if config.gs_refine.iterations > 0 {
-        lines.push(gs_refine_stage(runner, config, p)?);
+    if let Some(given) = &opts.gaussians {
+        lines.push(given_gaussians_stage(runner, p, given)?);
+    } else {
+        lines.push(gs_init_stage(runner, config, p)?);
+        if stop_after(StageName::GsInit) {
+            return Ok(None);
+        }
+        if config.gs_refine.iterations > 0 {
+            lines.push(gs_refine_stage(runner, config, p)?);
+        }
     }
     if stop_after(StageName::GsRefine) {
         return Ok(None);
@@ -601,6 +609,34 @@ fn gs_refine_stage(r: &Runner<'_>, config: &Config, p: &Paths) -> Result<StageLi
             })
             .map_err(stage_err("gs-refine"))?;
             Ok(to_json(&report))
+        },
+    )
+}
+
+/// gaussians: a given Gaussians file (instead of gs-init and gs-refine) ->
+/// out/gaussians, its bytes unchanged once it reads as a valid Gaussians file. Running it
+/// removes the records of gs-init and gs-refine, whose output it replaces, so that they run
+/// again when they are next asked for.
+fn given_gaussians_stage(r: &Runner<'_>, p: &Paths, given: &Path) -> Result<StageLine> {
+    stage(
+        r,
+        "gaussians",
+        json!({ "from": given }),
+        vec![given.to_path_buf()],
+        vec![p.gaussians.clone()],
+        || {
+            for replaced in ["gs-init", "gs-refine"] {
+                clear_stamp(r.out, replaced)
+                    .map_err(io_err(r.out, "cannot remove a completion record"))?;
+            }
+            let g = Gaussians::read(given).map_err(stage_err("gaussians"))?;
+            let mut src = std::fs::File::open(given)
+                .map_err(io_err(given, "cannot open the given Gaussians"))?;
+            profuse_formats::write_atomically(&p.gaussians, |mut f| {
+                std::io::copy(&mut src, &mut f).map(|_| ())
+            })
+            .map_err(|(action, e)| io_err(&p.gaussians, action)(e))?;
+            Ok(json!({ "from": given, "gaussians": g.len() }))
         },
     )
 }
@@ -951,7 +987,7 @@ fn timing(lines: &[StageLine]) -> BTreeMap<String, f64> {
 }
 
 /// Every image of the cameras file (gs-init reads reference views' images).
-fn image_paths(p: &Paths) -> Result<Vec<PathBuf>> {
+pub(crate) fn image_paths(p: &Paths) -> Result<Vec<PathBuf>> {
     let cams = Cameras::read(&p.cameras).map_err(stage_err("gs-init"))?;
     Ok(cams.image_names.iter().map(|n| p.scene.join(n)).collect())
 }

@@ -22,7 +22,8 @@ use profuse_formats::{FileKind, Masks};
 use crate::demo::{run_experiment, Experiment};
 use crate::error::{io_err, stage_err, PipelineError, Result};
 use crate::evaluate::evaluate_run;
-use crate::run::{run, Paths, RunOptions};
+use crate::fnv::Fnv;
+use crate::run::{image_paths, run, Paths, RunOptions};
 
 /// What to sweep.
 #[derive(Debug, Clone)]
@@ -83,7 +84,12 @@ pub struct SweepRow {
     /// ScanNet mIoU19 with the ground-truth proposals (`--oracle` only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub oracle_scannet_miou19: Option<f64>,
-    /// Wall-clock seconds of the row (generation, both runs, evaluation).
+    /// Whether the row's Gaussians were an earlier row's (the same photos, cameras and
+    /// matches under the same gs-init and gs-refine settings: [`GeometryCache`]) instead of
+    /// being computed again.
+    pub geometry_reused: bool,
+    /// Wall-clock seconds of the row (generation, both runs, evaluation, and the
+    /// ground-truth proposals' run with `--oracle`).
     pub seconds: f64,
 }
 
@@ -127,6 +133,7 @@ impl SweepRow {
             baseline_wrong_class_pixel_share: get(b, "wrong_class_pixel_share", "baseline")?,
             oracle_lerf_miou: None,
             oracle_scannet_miou19: None,
+            geometry_reused: false,
             seconds: x.wall_s,
         })
     }
@@ -157,8 +164,14 @@ impl SweepRow {
 
 /// Runs the pipeline on a generated scene with its ground-truth proposals
 /// ([`profuse_metrics::cluster::oracle_proposals`] of `gt/mask_objects.json`) given to the
-/// `proposals` stage instead of warp-graph, into `SCENE/out_oracle`, and scores it.
-pub fn run_oracle(scene: &Path, config: &Config) -> Result<BTreeMap<String, Value>> {
+/// `proposals` stage instead of warp-graph, into `SCENE/out_oracle`, and scores it. With
+/// `gaussians` (e.g. the row's own run's), that file is the run's geometry instead of a
+/// second gs-init and gs-refine.
+pub fn run_oracle(
+    scene: &Path,
+    config: &Config,
+    gaussians: Option<&Path>,
+) -> Result<BTreeMap<String, Value>> {
     let out = scene.join("out_oracle");
     std::fs::create_dir_all(&out).map_err(io_err(&out, "cannot create the output directory"))?;
     let truth = profuse_metrics::cluster::read_mask_objects(scene.join("gt/mask_objects.json"))
@@ -176,6 +189,7 @@ pub fn run_oracle(scene: &Path, config: &Config) -> Result<BTreeMap<String, Valu
         out: Some(out),
         force: false,
         proposals: Some(given),
+        gaussians: gaussians.map(Path::to_path_buf),
         ..RunOptions::default()
     };
     let summary = run(scene, config, &opts, &|_| {})?;
@@ -438,6 +452,75 @@ fn remove_dir(dir: &Path) -> Result<()> {
     }
 }
 
+/// The Gaussians of the rows run so far, by what determines them: rows of one seed whose
+/// fault sets change only masks and features (`default`, `noisy-features`,
+/// `harsh-segmentation`) have byte-identical photos, cameras and matches, so gs-init and
+/// gs-refine would compute byte-identical Gaussians again; the later rows take the first
+/// one's through [`RunOptions::gaussians`] instead (the stages being deterministic, their
+/// rows do not change by a bit). Files live in `DIR/.geometry/` and go with the sweep.
+#[derive(Debug)]
+pub struct GeometryCache {
+    dir: PathBuf,
+    known: BTreeMap<u64, PathBuf>,
+}
+
+impl GeometryCache {
+    /// An empty cache whose files go under `parent/.geometry`.
+    pub fn new(parent: &Path) -> GeometryCache {
+        GeometryCache {
+            dir: parent.join(".geometry"),
+            known: BTreeMap::new(),
+        }
+    }
+
+    /// The key of a scene's geometry: FNV-1a over the gs-init and gs-refine settings and
+    /// the bytes of the cameras, the matches and every photo the cameras name.
+    pub fn key(scene: &Path, config: &Config) -> Result<u64> {
+        let p = Paths::new(scene, &scene.join("out"), false);
+        let settings = format!(
+            "{}\0{}\0",
+            serde_json::to_string(&config.gs_init).unwrap_or_default(),
+            serde_json::to_string(&config.gs_refine).unwrap_or_default()
+        );
+        let mut hash = Fnv::new().bytes(settings.as_bytes());
+        let mut files = vec![p.cameras.clone(), p.matches.clone()];
+        files.extend(image_paths(&p)?);
+        for f in files {
+            let bytes = std::fs::read(&f).map_err(io_err(&f, "cannot read a geometry input"))?;
+            hash = hash
+                .bytes(
+                    f.strip_prefix(scene)
+                        .unwrap_or(&f)
+                        .as_os_str()
+                        .as_encoded_bytes(),
+                )
+                .bytes(&(bytes.len() as u64).to_le_bytes())
+                .bytes(&bytes);
+        }
+        Ok(hash.0)
+    }
+
+    /// The Gaussians stored under `key`, if any.
+    pub fn get(&self, key: u64) -> Option<&Path> {
+        self.known.get(&key).map(PathBuf::as_path)
+    }
+
+    /// Stores a copy of `gaussians` under `key`.
+    pub fn insert(&mut self, key: u64, gaussians: &Path) -> Result<()> {
+        std::fs::create_dir_all(&self.dir)
+            .map_err(io_err(&self.dir, "cannot create the geometry cache"))?;
+        let kept = self.dir.join(format!("{key:016x}.safetensors"));
+        std::fs::copy(gaussians, &kept).map_err(io_err(&kept, "cannot keep a row's Gaussians"))?;
+        self.known.insert(key, kept);
+        Ok(())
+    }
+
+    /// Removes the stored files.
+    pub fn remove(self) -> Result<()> {
+        remove_dir(&self.dir)
+    }
+}
+
 /// The directory of one row's scene under the sweep's parent directory.
 pub fn row_dir(parent: &Path, faults: synth::FaultSet, seed: u64) -> PathBuf {
     parent.join(format!("{}-seed{seed}", faults.name()))
@@ -468,6 +551,7 @@ pub fn sweep(opts: &SweepOptions, events: &dyn Fn(SweepEvent<'_>)) -> Result<Swe
         .map_err(io_err(&parent, "cannot create the sweep directory"))?;
     let total = opts.seeds.len() * opts.faults.len();
     let mut rows = Vec::with_capacity(total);
+    let mut geometry = GeometryCache::new(&parent);
     let result: Result<()> = (|| {
         for &faults in &opts.faults {
             for &seed in &opts.seeds {
@@ -482,17 +566,25 @@ pub fn sweep(opts: &SweepOptions, events: &dyn Fn(SweepEvent<'_>)) -> Result<Swe
                 let dir = row_dir(&parent, faults, seed);
                 remove_dir(&dir)?;
                 let synth_config = faults.config(opts.preset, seed);
-                let x = run_experiment(
-                    &dir,
-                    Some(&synth_config),
-                    &opts.config,
-                    &RunOptions::default(),
-                    &|_| {},
-                )?;
-                let mut row = SweepRow::from_experiment(seed, faults.name(), &x)?;
-                if opts.oracle {
-                    row = row.with_oracle(&dir, &run_oracle(&dir, &opts.config)?)?;
+                let t_row = Instant::now();
+                synth::generate(&synth_config, &dir).map_err(stage_err("synth"))?;
+                let key = GeometryCache::key(&dir, &opts.config)?;
+                let run_opts = RunOptions {
+                    gaussians: geometry.get(key).map(Path::to_path_buf),
+                    ..RunOptions::default()
+                };
+                let x = run_experiment(&dir, None, &opts.config, &run_opts, &|_| {})?;
+                let gaussians = x.full.out.join("gaussians.safetensors");
+                if run_opts.gaussians.is_none() {
+                    geometry.insert(key, &gaussians)?;
                 }
+                let mut row = SweepRow::from_experiment(seed, faults.name(), &x)?;
+                row.geometry_reused = run_opts.gaussians.is_some();
+                if opts.oracle {
+                    let oracle = run_oracle(&dir, &opts.config, Some(&gaussians))?;
+                    row = row.with_oracle(&dir, &oracle)?;
+                }
+                row.seconds = t_row.elapsed().as_secs_f64();
                 if !opts.keep {
                     remove_dir(&dir)?;
                 }
@@ -507,10 +599,12 @@ pub fn sweep(opts: &SweepOptions, events: &dyn Fn(SweepEvent<'_>)) -> Result<Swe
         }
         Ok(())
     })();
+    let removed = geometry.remove();
     if opts.out.is_none() && !opts.keep {
         remove_dir(&parent)?;
     }
     result?;
+    removed?;
     let report = SweepReport::new(rows, t0.elapsed().as_secs_f64());
     if let Some(out) = &opts.out {
         let path = out.join("sweep.json");
@@ -655,6 +749,7 @@ mod tests {
             baseline_wrong_class_pixel_share: 0.2,
             oracle_lerf_miou: None,
             oracle_scannet_miou19: None,
+            geometry_reused: false,
             seconds: 1.0,
         }
     }

@@ -220,7 +220,7 @@ fn missing_inputs_and_bad_parameters_name_the_file_or_key_and_write_nothing() {
 fn given_proposals_replace_warp_graph() {
     let dir = tempfile::tempdir().unwrap();
     tiny_scene(dir.path());
-    let scores = profuse_pipeline::sweep::run_oracle(dir.path(), &tiny_config()).unwrap();
+    let scores = profuse_pipeline::sweep::run_oracle(dir.path(), &tiny_config(), None).unwrap();
     assert_eq!(scores["proposals"]["ari"].as_f64(), Some(1.0), "{scores:?}");
     assert_eq!(scores["proposals"]["purity"].as_f64(), Some(1.0));
     assert!(scores["lerf_miou"].as_f64().unwrap() > 25.0, "{scores:?}");
@@ -276,6 +276,97 @@ fn given_proposals_replace_warp_graph() {
     .unwrap();
     assert_eq!(back.stages[1].stage, "warp-graph");
     assert!(back.stages[1].ran, "{:?}", ran(&back));
+}
+
+/// A given Gaussians file replaces gs-init and gs-refine (`RunOptions::gaussians`, what
+/// the sweep uses for rows of one geometry): its bytes become out/gaussians, every later
+/// output equals that of the run that computed them, a second run is up to date, a file
+/// that is not Gaussians is refused by name without touching out/, and without the option
+/// gs-init and gs-refine run again.
+#[test]
+fn given_gaussians_replace_the_geometry_stages_with_the_same_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let cfg = tiny_config()
+        .with_overrides(&["gs_refine.iterations=20".into()])
+        .unwrap();
+    let computed = dir.path().join("computed");
+    let a = run(
+        dir.path(),
+        &cfg,
+        &RunOptions {
+            out: Some(computed.clone()),
+            ..RunOptions::default()
+        },
+        &|_| {},
+    )
+    .unwrap();
+    assert_eq!(ran(&a)[..2], [("gs-init", true), ("gs-refine", true)]);
+
+    let given = computed.join("gaussians.safetensors");
+    let out = dir.path().join("given");
+    let opts = RunOptions {
+        out: Some(out.clone()),
+        gaussians: Some(given.clone()),
+        ..RunOptions::default()
+    };
+    let b = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    assert_eq!(ran(&b)[..2], [("gaussians", true), ("warp-graph", true)]);
+    assert_eq!(b.stages.len(), a.stages.len() - 1);
+    for file in [
+        "gaussians.safetensors",
+        "proposals.safetensors",
+        "features.safetensors",
+        "pq.safetensors",
+        "vertex_labels_nyu19.safetensors",
+    ] {
+        let (x, y) = (computed.join(file), out.join(file));
+        assert_eq!(
+            std::fs::read(&x).unwrap(),
+            std::fs::read(&y).unwrap(),
+            "{file}"
+        );
+    }
+    let again = run(dir.path(), &cfg, &opts, &|_| {}).unwrap();
+    assert!(again.stages.iter().all(|l| !l.ran), "{:?}", ran(&again));
+
+    let before = std::fs::read(out.join("gaussians.safetensors")).unwrap();
+    let not_gaussians = dir.path().join("masks.safetensors");
+    let e = run(
+        dir.path(),
+        &cfg,
+        &RunOptions {
+            gaussians: Some(not_gaussians),
+            ..opts.clone()
+        },
+        &|_| {},
+    )
+    .unwrap_err();
+    let e = error_chain(&e);
+    assert!(
+        e.contains("gaussians") && e.contains("masks.safetensors"),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read(out.join("gaussians.safetensors")).unwrap(),
+        before
+    );
+
+    let back = run(
+        dir.path(),
+        &cfg,
+        &RunOptions {
+            gaussians: None,
+            ..opts
+        },
+        &|_| {},
+    )
+    .unwrap();
+    assert_eq!(ran(&back)[..2], [("gs-init", true), ("gs-refine", true)]);
+    assert_eq!(
+        std::fs::read(out.join("gaussians.safetensors")).unwrap(),
+        before
+    );
 }
 
 /// Issue 20 item 8: an input replaced by a different file with an *older* modification

@@ -38,6 +38,11 @@ pub enum Command {
         /// warp-graph; it must have one entry per mask of SCENE/masks.safetensors.
         #[arg(long, value_name = "FILE")]
         proposals: Option<PathBuf>,
+        /// Use this Gaussians file (SPEC.md §4.2: a trained splat converted with
+        /// `scene-io`, or the geometry of another run of the same photos) instead of
+        /// running gs-init and gs-refine; it is checked and copied to out/.
+        #[arg(long, value_name = "FILE")]
+        gaussians: Option<PathBuf>,
         /// Stop after this stage (gs-init, gs-refine, warp-graph, fuse, pq, query,
         /// vertex-transfer);
         /// a run that stops early prints its stages but no scores. Used to split a run
@@ -237,7 +242,8 @@ pub struct Common {
     /// vertex_transfer;
     /// `out/config.toml` of a run is a complete one). For `run` missing keys take the
     /// paper's defaults; for `demo` they keep the demo's settings (gs_init.budget=3000,
-    /// pq.sample=16384, pq.iters=10) and the file's keys apply on top.
+    /// gs_refine.iterations=500, pq.sample=16384, pq.iters=10) and the file's keys apply
+    /// on top.
     #[arg(long, value_name = "TOML")]
     pub config: Option<PathBuf>,
     /// Override one parameter, e.g. `--set fuse.k=40 --set query.threshold=0.6` (TOML

@@ -27,6 +27,7 @@ fn main() -> ExitCode {
         Command::Run {
             scene,
             proposals,
+            gaussians,
             until,
             fuse_partials,
             warp_partials,
@@ -38,6 +39,7 @@ fn main() -> ExitCode {
             }
             let opts = RunOptions {
                 proposals,
+                gaussians,
                 until,
                 fuse_partials,
                 warp_partials,
