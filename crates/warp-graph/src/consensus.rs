@@ -48,9 +48,24 @@
 //!    percentile of the observer counts of all node pairs with at least one observer,
 //!    linear interpolation as numpy's default; a threshold of 1 or less ends the list
 //!    below the 50th percentile and is raised to 1 above it): consistent pairs with at
-//!    least that many observers are edges, and each connected component (petgraph's
-//!    union-find) becomes one node (visible views: union; containers: union). Pairs seen
-//!    together by many views are decided first, when their evidence is strongest.
+//!    least that many observers are edges. The edges unite their nodes strongest first
+//!    (more observers, then the higher rate supporters / observers, then the ids; petgraph's
+//!    union-find), and a union is refused when the two clusters *as they stand by then*
+//!    have observers and supporters < `union_ratio` · observers: most of the views that
+//!    contain both keep them apart. Each resulting cluster becomes one node (visible views:
+//!    union; containers: union). Pairs seen together by many views are decided first, when
+//!    their evidence is strongest.
+//!
+//!    Why the check: consistency is a property of pairs, and uniting every consistent
+//!    pair at once is single linkage again. A mask that merges a bookshelf with the wall
+//!    behind it, seen merged in two views, is consistent with the bookshelf's cluster and
+//!    with the wall's (two observers, two supporters each), and once both unions are made
+//!    the bookshelf's descriptor is the wall's, though fifteen views hold the two apart.
+//!    Checked cluster against cluster, the second union is refused (seed 5, `default`:
+//!    measured in the crate README). The rate is a majority, not `consensus`: an object
+//!    that one view splits in two must still gather both halves through the whole masks
+//!    of the other views, with that one view against (`union_ratio` = 0 unites every
+//!    edge, the earlier rule).
 //!
 //! 7. **Shares.** Every mask's share s_m = (weight its best container holds) / (weight
 //!    labelled), both summed over the other views that observe it (1 where none does),
@@ -142,6 +157,10 @@ pub struct ConsensusParams {
     pub undersegment_ratio: f64,
     /// Two nodes are consistent when supporters >= this · observers (MaskClustering: 0.9).
     pub consensus: f64,
+    /// Within an iteration, the union of two clusters is refused when their supporters <
+    /// this · their observers (as the clusters stand when the union comes up); 0 unites
+    /// every consistent pair (single linkage within an iteration).
+    pub union_ratio: f64,
     /// Most Gaussians tracked as points (every k-th beyond; all of them are rendered).
     pub max_points: usize,
     /// After the iterations, unite clusters along the accepted warp links (strongest
@@ -159,6 +178,7 @@ impl Default for ConsensusParams {
             contained_ratio: 0.8,
             undersegment_ratio: 0.5,
             consensus: 0.9,
+            union_ratio: 0.5,
             max_points: 200_000,
             link_merge: true,
             point_weight: PointWeight::Pixels,
@@ -175,8 +195,11 @@ pub struct ConsensusStats {
     pub undersegmented: u64,
     /// Observer thresholds of the iterations, in order.
     pub thresholds: Vec<u32>,
-    /// Consistent pairs joined per iteration (edges of that iteration's graph).
+    /// Consistent pairs per iteration (edges of that iteration's graph).
     pub edges: Vec<u64>,
+    /// Unions refused per iteration because the clusters the edge would join had become
+    /// inconsistent at `union_ratio` (step 6).
+    pub refused: Vec<u64>,
     /// Unions made by the final pass along the warp links.
     pub link_merges: u64,
 }
@@ -493,9 +516,65 @@ fn common(a: &[u32], b: &[u32]) -> u32 {
     n
 }
 
+/// Clusters of nodes being united: petgraph's union-find over the node indices, each
+/// root holding the union of its nodes.
+struct Clusters {
+    uf: UnionFind<u32>,
+    nodes: Vec<Option<Node>>,
+}
+
+impl Clusters {
+    fn new(nodes: Vec<Node>) -> Self {
+        Clusters {
+            uf: UnionFind::new(nodes.len()),
+            nodes: nodes.into_iter().map(Some).collect(),
+        }
+    }
+
+    /// Unites the clusters of nodes `a` and `b` unless they are one already or `allow`
+    /// refuses the two clusters as they stand; whether they were united.
+    fn unite(&mut self, a: u32, b: u32, allow: impl FnOnce(&Node, &Node) -> bool) -> bool {
+        let (ra, rb) = (self.uf.find(a) as usize, self.uf.find(b) as usize);
+        if ra == rb {
+            return false;
+        }
+        let (Some(na), Some(nb)) = (&self.nodes[ra], &self.nodes[rb]) else {
+            return false;
+        };
+        if !allow(na, nb) {
+            return false;
+        }
+        self.uf.union(ra as u32, rb as u32);
+        let root = self.uf.find(ra as u32) as usize;
+        let from = if root == ra { rb } else { ra };
+        if let Some(n) = self.nodes[from].take() {
+            if let Some(r) = self.nodes[root].as_mut() {
+                r.absorb(n);
+                r.tidy();
+            }
+        }
+        true
+    }
+
+    /// The clusters in order of their smallest mask.
+    fn into_nodes(self) -> Vec<Node> {
+        let mut out: Vec<Node> = self.nodes.into_iter().flatten().collect();
+        out.sort_unstable_by_key(|n| n.masks[0]);
+        out
+    }
+}
+
+/// What one iteration did: its edges and the unions it refused.
+struct Iteration {
+    nodes: Vec<Node>,
+    edges: u64,
+    refused: u64,
+}
+
 /// One iteration: the consistent pairs with at least `threshold` observers, and the
-/// nodes merged along them.
-fn iterate(nodes: Vec<Node>, threshold: u32, consensus: f64, masks: usize) -> (Vec<Node>, u64) {
+/// nodes merged along them, strongest first, each union checked at `union_ratio` (module
+/// docs, step 6).
+fn iterate(nodes: Vec<Node>, threshold: u32, p: &ConsensusParams, masks: usize) -> Iteration {
     // Nodes by container: pairs sharing none have no supporter and are never consistent.
     let mut by_container: Vec<Vec<u32>> = vec![Vec::new(); masks];
     for (x, n) in nodes.iter().enumerate() {
@@ -505,7 +584,8 @@ fn iterate(nodes: Vec<Node>, threshold: u32, consensus: f64, masks: usize) -> (V
     }
     let nodes_ref = &nodes;
     let by_container = &by_container;
-    let edges: Vec<(u32, u32)> = (0..nodes.len())
+    // (a, b, observers, supporters) of every consistent pair.
+    let mut edges: Vec<(u32, u32, u32, u32)> = (0..nodes.len())
         .into_par_iter()
         .flat_map_iter(|a| {
             let na = &nodes_ref[a];
@@ -519,35 +599,40 @@ fn iterate(nodes: Vec<Node>, threshold: u32, consensus: f64, masks: usize) -> (V
             partners.dedup();
             partners
                 .into_iter()
-                .filter(|&b| {
+                .filter_map(|b| {
                     let nb = &nodes_ref[b as usize];
                     let observers = na.observers(nb);
-                    observers >= threshold.max(1) && na.supported(nb, observers, consensus)
+                    let supporters = common(&na.containers, &nb.containers);
+                    let consistent = observers >= threshold.max(1)
+                        && f64::from(supporters) >= p.consensus * f64::from(observers);
+                    consistent.then_some((a as u32, b, observers, supporters))
                 })
-                .map(|b| (a as u32, b))
                 .collect::<Vec<_>>()
         })
         .collect();
-    let mut uf = UnionFind::<u32>::new(nodes.len());
-    for &(a, b) in &edges {
-        uf.union(a, b);
+    // More observers first, then the higher support rate (cross-multiplied: integers),
+    // then the ids.
+    edges.sort_unstable_by(|x, y| {
+        y.2.cmp(&x.2)
+            .then((u64::from(y.3) * u64::from(x.2)).cmp(&(u64::from(x.3) * u64::from(y.2))))
+            .then((x.0, x.1).cmp(&(y.0, y.1)))
+    });
+    let mut clusters = Clusters::new(nodes);
+    let mut refused = 0u64;
+    for &(a, b, _, _) in &edges {
+        let mut inconsistent = false;
+        let united = clusters.unite(a, b, |na, nb| {
+            let observers = na.observers(nb);
+            inconsistent = observers > 0 && !na.supported(nb, observers, p.union_ratio);
+            !inconsistent
+        });
+        refused += u64::from(!united && inconsistent);
     }
-    let roots = uf.into_labeling();
-    // New nodes in order of their first (smallest-index) old node, which keeps them in
-    // order of their smallest mask.
-    let mut slot: Vec<u32> = vec![u32::MAX; nodes.len()];
-    let mut merged: Vec<Node> = Vec::new();
-    for (x, n) in nodes.into_iter().enumerate() {
-        let r = roots[x] as usize;
-        if slot[r] == u32::MAX {
-            slot[r] = merged.len() as u32;
-            merged.push(n);
-            continue;
-        }
-        merged[slot[r] as usize].absorb(n);
+    Iteration {
+        nodes: clusters.into_nodes(),
+        edges: edges.len() as u64,
+        refused,
     }
-    merged.iter_mut().for_each(Node::tidy);
-    (merged, edges.len() as u64)
 }
 
 /// Step 7: the warp links between clusters, strongest first (the smaller IoU of the two
@@ -573,36 +658,17 @@ fn merge_along_links(
         .filter(|l| l.masks.iter().all(|&m| !under[m as usize]))
         .collect();
     order.sort_by(|p, q| q.iou.total_cmp(&p.iou).then(p.masks.cmp(&q.masks)));
-    let mut uf = UnionFind::<u32>::new(nodes.len());
-    let mut merged: Vec<Option<Node>> = nodes.into_iter().map(Some).collect();
+    let mut clusters = Clusters::new(nodes);
     let mut merges = 0u64;
     for l in order {
-        let (a, b) = (
-            uf.find(node_of[l.masks[0] as usize]) as usize,
-            uf.find(node_of[l.masks[1] as usize]) as usize,
-        );
-        if a == b {
-            continue;
-        }
-        let (Some(na), Some(nb)) = (&merged[a], &merged[b]) else {
-            continue;
-        };
-        let observers = na.observers(nb);
-        if observers > 0 && !na.supported(nb, observers, consensus) {
-            continue;
-        }
-        uf.union(a as u32, b as u32);
-        let root = uf.find(a as u32) as usize;
-        let from = if root == a { b } else { a };
-        if let Some(n) = merged[from].take() {
-            if let Some(r) = merged[root].as_mut() {
-                r.absorb(n);
-                r.tidy();
-            }
-        }
-        merges += 1;
+        let (a, b) = (node_of[l.masks[0] as usize], node_of[l.masks[1] as usize]);
+        let united = clusters.unite(a, b, |na, nb| {
+            let observers = na.observers(nb);
+            observers == 0 || na.supported(nb, observers, consensus)
+        });
+        merges += u64::from(united);
     }
-    (merged.into_iter().flatten().collect(), merges)
+    (clusters.into_nodes(), merges)
 }
 
 /// The consensus clustering of all masks: per global mask its cluster root (a global
@@ -656,12 +722,14 @@ pub(crate) fn cluster(
         undersegmented: under.iter().filter(|u| **u).count() as u64,
         thresholds: thresholds.clone(),
         edges: Vec::new(),
+        refused: Vec::new(),
         link_merges: 0,
     };
     for t in thresholds {
-        let (next, e) = iterate(nodes, t, p.consensus, masks);
-        nodes = next;
-        stats.edges.push(e);
+        let it = iterate(nodes, t, p, masks);
+        nodes = it.nodes;
+        stats.edges.push(it.edges);
+        stats.refused.push(it.refused);
     }
     if p.link_merge {
         let (next, merges) = merge_along_links(nodes, links, &under, p.consensus);
@@ -841,6 +909,54 @@ mod tests {
         assert_eq!(root, vec![0, 1, 1, 0, 0, 1, 1, 0, 8]);
         assert_eq!(stats.undersegmented, 1);
         assert_eq!(stats.link_merges, 0);
+    }
+
+    /// A bookshelf (points 40-49) against a wall (points 0-39), merged into one mask in
+    /// views 0 and 1, and apart in views 2-7, which see only a corner of each (5 points
+    /// of each, too little of the merged masks to observe them). Each merged mask is
+    /// consistent with the wall's cluster and with the bookshelf's (two observers, two
+    /// supporters), while the two clusters are seen together by eight views and held in
+    /// one mask by two. Uniting every consistent pair (`union_ratio` 0) makes one cluster
+    /// of all; checked cluster against cluster, the merged masks join the wall (first in
+    /// id order) and the bookshelf stays apart.
+    #[test]
+    fn a_mask_consistent_with_two_clusters_does_not_unite_them() {
+        let mut labels = vec![vec![0u32; 50], vec![0u32; 50]];
+        labels.extend((0..6).map(|_| {
+            (0..50)
+                .map(|g| match g {
+                    35..40 => 0,
+                    45..50 => 1,
+                    _ => NONE,
+                })
+                .collect::<Vec<u32>>()
+        }));
+        let offsets = [0, 1, 2, 4, 6, 8, 10, 12, 14];
+        let points = unit_points(&labels, &offsets);
+        let wall = [2, 4, 6, 8, 10, 12];
+        let bookshelf = [3, 5, 7, 9, 11, 13];
+        let run = |union_ratio| {
+            let p = ConsensusParams {
+                union_ratio,
+                ..ConsensusParams::default()
+            };
+            cluster(&labels, &points, &offsets, 50, &[], &p)
+        };
+
+        let single = run(0.0);
+        assert_eq!(single.under, vec![false; 14]);
+        assert_eq!(single.root, vec![0; 14]);
+        assert_eq!(single.stats.refused.iter().sum::<u64>(), 0);
+
+        let guarded = run(ConsensusParams::default().union_ratio);
+        assert_eq!(guarded.under, vec![false; 14]);
+        for m in [0, 1].into_iter().chain(wall) {
+            assert_eq!(guarded.root[m], 0, "mask {m}");
+        }
+        for m in bookshelf {
+            assert_eq!(guarded.root[m], 3, "mask {m}");
+        }
+        assert!(guarded.stats.refused.iter().sum::<u64>() >= 1);
     }
 
     /// A split object: view 0 has two halves, views 1-4 the whole. The halves are each

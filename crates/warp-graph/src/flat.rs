@@ -99,6 +99,11 @@ pub struct FlatParams {
     /// least this share of the views containing both.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.consensus))]
     pub consensus_threshold: f64,
+    /// Consensus: within an iteration, two clusters are not united when the views
+    /// containing both put them in one mask less often than this share (a majority by
+    /// default); 0 unites every consistent pair.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.union_ratio))]
+    pub consensus_union_ratio: f64,
     /// Consensus: most Gaussians tracked as points (every k-th beyond; all are rendered).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.max_points))]
     pub consensus_max_points: usize,
@@ -157,6 +162,7 @@ impl From<FlatParams> for Params {
                 contained_ratio: f.consensus_contained_ratio,
                 undersegment_ratio: f.consensus_undersegment_ratio,
                 consensus: f.consensus_threshold,
+                union_ratio: f.consensus_union_ratio,
                 max_points: f.consensus_max_points,
                 link_merge: f.consensus_link_merge,
                 point_weight: f.consensus_point_weight,
@@ -189,6 +195,7 @@ impl From<Params> for FlatParams {
             consensus_contained_ratio: p.consensus.contained_ratio,
             consensus_undersegment_ratio: p.consensus.undersegment_ratio,
             consensus_threshold: p.consensus.consensus,
+            consensus_union_ratio: p.consensus.union_ratio,
             consensus_max_points: p.consensus.max_points,
             consensus_link_merge: p.consensus.link_merge,
             consensus_point_weight: p.consensus.point_weight,

@@ -719,6 +719,10 @@ impl<'a> Association<'a> {
                     c.undersegment_ratio.to_string(),
                 ),
                 ("consensus_threshold".to_string(), c.consensus.to_string()),
+                (
+                    "consensus_union_ratio".to_string(),
+                    c.union_ratio.to_string(),
+                ),
                 ("consensus_max_points".to_string(), c.max_points.to_string()),
                 ("consensus_link_merge".to_string(), c.link_merge.to_string()),
                 (

@@ -309,6 +309,7 @@ impl Params {
             ("consensus_contained_ratio", c.contained_ratio),
             ("consensus_undersegment_ratio", c.undersegment_ratio),
             ("consensus_threshold", c.consensus),
+            ("consensus_union_ratio", c.union_ratio),
         ] {
             if !unit(v) {
                 return bad(name, v.to_string(), "a number in [0, 1]");
