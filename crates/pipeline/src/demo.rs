@@ -260,7 +260,7 @@ pub fn demo_text(v: &Value) -> String {
          Point-cloud understanding (ScanNet protocol on the labelled mesh)\n\
          \x20 mIoU 19 classes {s19}  15 classes {s15}  10 classes {s10}\n\
          Pre-registration\n\
-         \x20 proposals ARI {ari}  purity {pur}  completeness {com}   initial Gaussians' median distance to the surface {d} of the scene extent\n\
+         \x20 proposals ARI {ari}  purity {pur}  completeness {com}   Gaussians' median distance to the surface {d} of the scene extent\n\
          \x20 mask pixels registering the wrong class: ProFuse {w}, baseline {bw}\n\
          Time: geometry {tg}, semantics {ts}, indexing {ti}, total {tt} (wall {tw})\n\
          Selections over the rendered views: {ov}/<frame>/<prompt>.png",

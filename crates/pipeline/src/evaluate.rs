@@ -13,7 +13,9 @@ use crate::error::{stage_err, Result};
 use crate::run::{fuse_job, Paths, RegisteredMasks, Summary};
 
 /// Every score the ground truth allows, as a JSON object with keys:
-/// `init_median_surface_dist_rel` and `init_surface` (gt/scene.json), `proposals_ari` and
+/// `init_median_surface_dist_rel` and `init_surface` (gt/scene.json; of the Gaussians the
+/// run registers onto: gs-init's, or gs-refine's when it runs — the key keeps its first
+/// name), `proposals_ari` and
 /// `proposals` (gt/mask_objects.json), `lerf_miou`, `lerf_acc25` and `lerf` (gt/label/),
 /// `scannet_miou19/15/10`, `scannet_macc19/15/10` (gt/mesh.safetensors labels; each set
 /// from its own `vertex_labels_nyu<set>` file).

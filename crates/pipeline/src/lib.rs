@@ -21,7 +21,7 @@
 //!   paper's values as defaults, from TOML and `section.key=value` overrides; the
 //!   effective configuration is written as `out/config.toml`.
 //! * **Ground truth when present** ([`evaluate`]): synthetic scenes carry `gt/`, from which
-//!   the run is scored (surface distance of the initial Gaussians, proposal ARI, LERF mIoU
+//!   the run is scored (surface distance of the run's Gaussians, proposal ARI, LERF mIoU
 //!   and Acc@0.25, ScanNet-style mIoU) and, with [`evaluate::evaluate_run`], the share of
 //!   mask pixels whose registered descriptor names the wrong class, from the registration
 //!   the fuse stage keeps in memory ([`Summary::registered`]) or recomputes; nothing extra
