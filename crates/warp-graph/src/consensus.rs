@@ -432,8 +432,17 @@ impl Node {
     /// Whether the views containing both put them in one mask often enough: supporters >=
     /// `consensus` · `observers` (module docs, step 5).
     fn supported(&self, other: &Node, observers: u32, consensus: f64) -> bool {
-        f64::from(common(&self.containers, &other.containers)) >= consensus * f64::from(observers)
+        holds(
+            common(&self.containers, &other.containers),
+            observers,
+            consensus,
+        )
     }
+}
+
+/// The consensus rule: supporters >= `rate` · observers.
+fn holds(supporters: u32, observers: u32, rate: f64) -> bool {
+    f64::from(supporters) >= rate * f64::from(observers)
 }
 
 fn popcount_and(a: &[u64], b: &[u64]) -> u32 {
@@ -603,8 +612,8 @@ fn iterate(nodes: Vec<Node>, threshold: u32, p: &ConsensusParams, masks: usize) 
                     let nb = &nodes_ref[b as usize];
                     let observers = na.observers(nb);
                     let supporters = common(&na.containers, &nb.containers);
-                    let consistent = observers >= threshold.max(1)
-                        && f64::from(supporters) >= p.consensus * f64::from(observers);
+                    let consistent =
+                        observers >= threshold.max(1) && holds(supporters, observers, p.consensus);
                     consistent.then_some((a as u32, b, observers, supporters))
                 })
                 .collect::<Vec<_>>()
