@@ -95,6 +95,10 @@ pub struct FlatParams {
     /// under-segmented and joins no proposal.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.undersegment_ratio))]
     pub consensus_undersegment_ratio: f64,
+    /// Consensus: count a mask's own view (which always contains it) among the views
+    /// judging it under-segmented, as MaskClustering does (default: only the other views).
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub consensus_own_view_votes: bool,
     /// Consensus: two clusters join when the views containing both in one mask are at
     /// least this share of the views containing both.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.consensus))]
@@ -161,6 +165,7 @@ impl From<FlatParams> for Params {
                 visible_ratio: f.consensus_visible_ratio,
                 contained_ratio: f.consensus_contained_ratio,
                 undersegment_ratio: f.consensus_undersegment_ratio,
+                own_view_votes: f.consensus_own_view_votes,
                 consensus: f.consensus_threshold,
                 union_ratio: f.consensus_union_ratio,
                 max_points: f.consensus_max_points,
@@ -194,6 +199,7 @@ impl From<Params> for FlatParams {
             consensus_visible_ratio: p.consensus.visible_ratio,
             consensus_contained_ratio: p.consensus.contained_ratio,
             consensus_undersegment_ratio: p.consensus.undersegment_ratio,
+            consensus_own_view_votes: p.consensus.own_view_votes,
             consensus_threshold: p.consensus.consensus,
             consensus_union_ratio: p.consensus.union_ratio,
             consensus_max_points: p.consensus.max_points,

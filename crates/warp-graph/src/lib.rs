@@ -718,6 +718,10 @@ impl<'a> Association<'a> {
                     "consensus_undersegment_ratio".to_string(),
                     c.undersegment_ratio.to_string(),
                 ),
+                (
+                    "consensus_own_view_votes".to_string(),
+                    c.own_view_votes.to_string(),
+                ),
                 ("consensus_threshold".to_string(), c.consensus.to_string()),
                 (
                     "consensus_union_ratio".to_string(),
