@@ -91,7 +91,7 @@ pub struct FlatParams {
     /// of its labelled points (by weight) there carry that mask's label.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.contained_ratio))]
     pub consensus_contained_ratio: f64,
-    /// Consensus: a mask split in more than this share of the views observing it is
+    /// Consensus: a mask split in more than this share of the other views observing it is
     /// under-segmented and joins no proposal.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.undersegment_ratio))]
     pub consensus_undersegment_ratio: f64,
