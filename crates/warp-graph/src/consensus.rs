@@ -353,6 +353,7 @@ fn mask_votes(
             share: 1.0,
         };
     }
+    // The other views that observe m, and those of them that split it.
     let (mut observed, mut split) = (0usize, 0usize);
     // Over the other views that observe m: the weight of its best container, and all
     // the weight they label (for the share).
@@ -361,7 +362,6 @@ fn mask_votes(
     let mut counts: HashMap<u32, u64> = HashMap::new();
     for (k, lk) in labels.iter().enumerate() {
         if k == own {
-            observed += 1;
             visible[k / 64] |= 1 << (k % 64);
             containers.push(global);
             continue;
@@ -391,12 +391,8 @@ fn mask_votes(
             split += 1;
         }
     }
-    // `observed` counts the own view, which always contains the mask (step 4).
-    let voters = if p.own_view_votes {
-        observed
-    } else {
-        observed - 1
-    };
+    // The own view always contains the mask, so it votes only on request (step 4).
+    let voters = observed + usize::from(p.own_view_votes);
     let undersegmented = split as f64 > p.undersegment_ratio * voters as f64;
     containers.sort_unstable();
     MaskVotes {
