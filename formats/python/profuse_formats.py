@@ -1301,6 +1301,7 @@ class Proposals(_Record):
         "proposal_size",
         "proposal_views",
         "mask_share",
+        "mask_instance",
     )
 
     path: str
@@ -1313,6 +1314,14 @@ class Proposals(_Record):
     proposal_views: np.ndarray
     #: F32 [M], each in (0, 1], or None: the estimated share of each mask on one object.
     mask_share: np.ndarray | None = None
+    #: U32 [M] or None: the object instance (proposal id) of each mask: its proposal for
+    #: a member, for a mask in no proposal the proposal holding most of its area, or
+    #: 4294967295 (none).
+    mask_instance: np.ndarray | None = None
+
+    def instances(self) -> np.ndarray:
+        """``mask_instance`` when present, otherwise ``mask_proposal``."""
+        return self.mask_instance if self.mask_instance is not None else self.mask_proposal
 
     def counts(self) -> dict[str, int]:
         return {
@@ -1759,6 +1768,7 @@ def _proposals(c: Container) -> Proposals:
     r.req("proposal_size", "U32", "P")
     r.req("proposal_views", "U32", "P")
     has_share = r.opt("mask_share", "F32", "M")
+    has_instance = r.opt("mask_instance", "U32", "M")
     a = r.load()
     path = c.path
     mp, size, views = a["mask_proposal"], a["proposal_size"], a["proposal_views"]
@@ -1767,6 +1777,16 @@ def _proposals(c: Container) -> Proposals:
     share = a["mask_share"] if has_share else None
     if share is not None:
         _check_share(path, "mask_share", share)
+    instance = a["mask_instance"] if has_instance else None
+    if instance is not None:
+        _check_ids(path, "mask_instance", instance, p, NO_PROPOSAL, "the proposals")
+        m = _first((mp != NO_PROPOSAL) & (instance != mp))
+        if m is not None:
+            raise _invalid(
+                path,
+                "mask_instance",
+                f"mask {m} is a member of proposal {int(mp[m])} but its instance is {int(instance[m])}",
+            )
     members = np.bincount(mp[mp != NO_PROPOSAL].astype(np.int64), minlength=p)[:p]
     size64 = size.astype(np.int64)
     views64 = views.astype(np.int64)
@@ -1797,6 +1817,7 @@ def _proposals(c: Container) -> Proposals:
         proposal_size=size,
         proposal_views=views,
         mask_share=share,
+        mask_instance=instance,
     )
 
 
@@ -3099,18 +3120,21 @@ def write_proposals(
     proposal_size: Any,
     proposal_views: Any,
     mask_share: Any = None,
+    mask_instance: Any = None,
     metadata: dict[str, str] | None = None,
     generator: str | None = GENERATOR,
 ) -> None:
     """``profuse.proposals`` (SPEC.md 4.6): proposal id per global mask (4294967295 =
     none), members and distinct views per proposal, optionally ``mask_share`` (F32 [M],
-    each in (0, 1])."""
+    each in (0, 1]) and ``mask_instance`` (U32 [M]: each mask's instance, a member's
+    being its proposal)."""
     p = _label(path)
     tensors = {
         "mask_proposal": _tensor(p, "mask_proposal", mask_proposal, ("U32",)),
         "proposal_size": _tensor(p, "proposal_size", proposal_size, ("U32",)),
         "proposal_views": _tensor(p, "proposal_views", proposal_views, ("U32",)),
         "mask_share": _opt(p, "mask_share", mask_share, ("F32",)),
+        "mask_instance": _opt(p, "mask_instance", mask_instance, ("U32",)),
     }
     _finish(path, "proposals", tensors, {}, metadata, generator)
 

@@ -26,6 +26,12 @@ pub struct Proposals {
     /// area that lies on the one object its best container in the other views holds
     /// (written by the consensus grouping; `fuse` weighs a member's mass by it).
     pub mask_share: Option<Buffer<f32>>,
+    /// Optional `mask_instance` U32 [M]: the object instance (a proposal id) of every
+    /// mask: its proposal for a member; for a mask in no proposal (an under-segmented
+    /// one), the proposal holding most of its area, or 4294967295 (none). Members pool
+    /// into their proposal's descriptor; an attached mask only belongs to the instance and
+    /// registers its own feature (written by the consensus grouping).
+    pub mask_instance: Option<Buffer<u32>>,
     /// Other metadata (the thresholds used are recorded here), kept on round trips.
     pub extra: BTreeMap<String, String>,
 }
@@ -39,6 +45,12 @@ impl Proposals {
     /// Whether there are no proposals.
     pub fn is_empty(&self) -> bool {
         self.proposal_size.is_empty()
+    }
+
+    /// The object instance of every mask: `mask_instance` when present, otherwise the
+    /// proposal (`mask_proposal`), [`NO_PROPOSAL`] for none.
+    pub fn instances(&self) -> &[u32] {
+        self.mask_instance.as_deref().unwrap_or(&self.mask_proposal)
     }
 
     /// Checks this file against the masks file it was built from: one entry per mask,
@@ -85,6 +97,7 @@ impl FileKind for Proposals {
             proposal_size: r.req("proposal_size", "P")?,
             proposal_views: r.req("proposal_views", "P")?,
             mask_share: r.opt("mask_share", "M")?,
+            mask_instance: r.opt("mask_instance", "M")?,
             extra: r.extra_meta(&[]),
         })
     }
@@ -108,6 +121,9 @@ impl FileKind for Proposals {
         )?;
         if let Some(s) = &self.mask_share {
             check_share(path, "mask_share", s, self.mask_proposal.len())?;
+        }
+        if let Some(inst) = &self.mask_instance {
+            check_instances(path, inst, &self.mask_proposal, p)?;
         }
         let mut members = vec![0u64; p];
         for id in self.mask_proposal.iter().filter(|id| **id != NO_PROPOSAL) {
@@ -163,6 +179,9 @@ impl FileKind for Proposals {
         if let Some(s) = &self.mask_share {
             w.tensor("mask_share", &[s.len()], s);
         }
+        if let Some(i) = &self.mask_instance {
+            w.tensor("mask_instance", &[i.len()], i);
+        }
     }
 
     fn counts(&self) -> BTreeMap<&'static str, u64> {
@@ -177,6 +196,41 @@ impl FileKind for Proposals {
                     .count() as u64,
             ),
         ])
+    }
+}
+
+/// `mask_instance`: one id per mask, each a proposal or none, and a member's instance is
+/// its proposal.
+fn check_instances(path: &str, inst: &[u32], proposal: &[u32], proposals: usize) -> Result<()> {
+    check_len(
+        path,
+        "mask_instance",
+        inst.len(),
+        proposal.len(),
+        "ids, one per mask",
+    )?;
+    check_ids(
+        path,
+        "mask_instance",
+        inst,
+        proposals as u64,
+        Some(u64::from(NO_PROPOSAL)),
+        "the proposals",
+    )?;
+    match inst
+        .iter()
+        .zip(proposal)
+        .position(|(i, p)| *p != NO_PROPOSAL && i != p)
+    {
+        Some(m) => Err(invalid(
+            path,
+            "mask_instance",
+            format!(
+                "mask {m} is a member of proposal {} but its instance is {}",
+                proposal[m], inst[m]
+            ),
+        )),
+        None => Ok(()),
     }
 }
 

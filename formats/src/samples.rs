@@ -206,13 +206,15 @@ pub fn sparse_matches() -> SparseMatches {
     }
 }
 
-/// Five masks in two proposals, one mask unassigned (matches [`masks`]).
+/// Five masks in two proposals, one mask unassigned and attached to proposal 0 as its
+/// instance (matches [`masks`]).
 pub fn proposals() -> Proposals {
     Proposals {
         mask_proposal: vec![0, 1, u32::MAX, 1, 0].into(),
         proposal_size: vec![2, 2].into(),
         proposal_views: vec![2, 2].into(),
         mask_share: Some(vec![0.875, 1.0, 0.5, 0.75, 0.625].into()),
+        mask_instance: Some(vec![0, 1, 0, 1, 0].into()),
         extra: BTreeMap::from([("tau_iou".to_string(), "0.2".to_string())]),
     }
 }
@@ -1137,6 +1139,16 @@ fn cases() -> Vec<Case> {
         }),
         "out_of_range",
         Some("mask_share"),
+    ));
+    inv.push((
+        "instance",
+        mutated(&p, |p| {
+            if let Some(i) = p.mask_instance.as_mut() {
+                set(i, 1, 0);
+            }
+        }),
+        "invalid",
+        Some("mask_instance"),
     ));
     cases.push(Case {
         stem: "proposals",

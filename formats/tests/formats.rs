@@ -489,7 +489,7 @@ proptest! {
         let size: Vec<u32> = (0..ids.len() as u32).map(|p| mask_proposal.iter().filter(|m| **m == p).count() as u32).collect();
         // Shares in (0, 1] for the even cases, none for the odd ones.
         let mask_share = (assign.len() % 2 == 0).then(|| assign.iter().map(|a| (*a + 1) as f32 / 6.0).collect::<Vec<f32>>().into());
-        let p = Proposals { mask_proposal: mask_proposal.into(), proposal_views: size.clone().into(), proposal_size: size.into(), mask_share, extra: Default::default() };
+        let p = Proposals { mask_proposal: mask_proposal.into(), proposal_views: size.clone().into(), proposal_size: size.into(), mask_share, mask_instance: None, extra: Default::default() };
         round_trip(&p);
     }
 

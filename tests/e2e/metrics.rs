@@ -362,6 +362,7 @@ fn proposals_from(assign: &[u32], views: &[u32]) -> Proposals {
             .collect::<Vec<_>>()
             .into(),
         mask_share: None,
+        mask_instance: None,
         extra: BTreeMap::new(),
     }
 }

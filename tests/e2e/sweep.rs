@@ -115,7 +115,7 @@ fn synth_fault_sets_write_their_documented_parameters_and_flags_win() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("harsh-segmentation"));
 }
 
-const ROW_KEYS: [&str; 14] = [
+const ROW_KEYS: [&str; 15] = [
     "seed",
     "faults",
     "lerf_miou",
@@ -125,6 +125,7 @@ const ROW_KEYS: [&str; 14] = [
     "scannet_miou19",
     "baseline_scannet_miou19",
     "ari",
+    "member_ari",
     "purity",
     "completeness",
     "wrong_class_pixel_share",
@@ -132,11 +133,12 @@ const ROW_KEYS: [&str; 14] = [
     "seconds",
 ];
 
-const MEAN_KEYS: [&str; 6] = [
+const MEAN_KEYS: [&str; 7] = [
     "mean_delta_lerf_miou",
     "min_delta_lerf_miou",
     "mean_delta_scannet_miou19",
     "mean_ari",
+    "mean_member_ari",
     "mean_purity",
     "rows",
 ];
@@ -172,6 +174,7 @@ fn check_means(m: &Value, rows: &[&Value]) {
         mean(rows, delta("scannet_miou19", "baseline_scannet_miou19"))
     ));
     assert!(close(&m["mean_ari"], mean(rows, f("ari"))));
+    assert!(close(&m["mean_member_ari"], mean(rows, f("member_ari"))));
     assert!(close(&m["mean_purity"], mean(rows, f("purity"))));
 }
 

@@ -70,8 +70,7 @@ pub fn run(b: &BenchParams, progress: &(dyn Fn(usize, usize) + Sync)) -> Result<
         outcome = Some(o);
     }
     let o = outcome.ok_or("no run")?;
-    let scores =
-        profuse_metrics::cluster::cluster_scores(&o.proposals.mask_proposal, &scene.truth)?;
+    let scores = profuse_metrics::cluster::proposal_scores(&o.proposals, &scene.truth)?;
     let pairs = o.report.pairs;
     Ok(json!({
         "width": cfg.width,

@@ -64,6 +64,7 @@ pub fn proposals_from_mask_objects(
         proposal_size: sizes.into(),
         proposal_views: views.into(),
         mask_share: None,
+        mask_instance: None,
         extra: BTreeMap::from([("generator".into(), "synth ground truth".into())]),
     })
 }

@@ -256,24 +256,41 @@ pub fn oracle_proposals(truth: &[u32], mask_view: &[u32]) -> Result<profuse_form
         proposal_views: proposal_views.into(),
         // Every member is on its object by construction: the mass alone.
         mask_share: None,
+        mask_instance: None,
         extra: [("grouping".to_string(), "ground-truth".to_string())].into(),
     })
 }
 
-/// Scores a proposals file's mask → proposal assignment (`mask_proposal`, `u32::MAX` =
-/// none) against per-mask ground truth (e.g. from [`read_mask_objects`]).
+/// Scores a proposals file's object instances ([`Proposals::instances`]: `mask_instance`
+/// when present, else `mask_proposal`; `u32::MAX` = none) against per-mask ground truth
+/// (e.g. from [`read_mask_objects`]).
+///
+/// [`Proposals::instances`]: profuse_formats::Proposals::instances
 pub fn proposal_scores(
     proposals: &profuse_formats::Proposals,
     truth: &[u32],
 ) -> Result<ClusterScores> {
-    if proposals.mask_proposal.len() != truth.len() {
+    scores_of(proposals.instances(), "proposals.mask_instance", truth)
+}
+
+/// Scores the proposals' members alone (`mask_proposal`: the masks pooled into each
+/// proposal's descriptor; attached masks unassigned) against per-mask ground truth.
+pub fn member_scores(
+    proposals: &profuse_formats::Proposals,
+    truth: &[u32],
+) -> Result<ClusterScores> {
+    scores_of(&proposals.mask_proposal, "proposals.mask_proposal", truth)
+}
+
+fn scores_of(predicted: &[u32], name: &'static str, truth: &[u32]) -> Result<ClusterScores> {
+    if predicted.len() != truth.len() {
         return Err(MetricsError::LengthMismatch {
             what: "proposal scores",
-            left_name: "proposals.mask_proposal",
-            left: proposals.mask_proposal.len(),
+            left_name: name,
+            left: predicted.len(),
             right_name: "ground-truth masks",
             right: truth.len(),
         });
     }
-    cluster_scores(&proposals.mask_proposal, truth)
+    cluster_scores(predicted, truth)
 }

@@ -56,6 +56,31 @@ mod cluster {
         assert!(oracle_proposals(&truth, &views[..3]).is_err());
     }
 
+    /// A mask attached to a proposal (`mask_instance`) counts in that proposal for the
+    /// proposal scores and as a singleton for the member scores; without `mask_instance`
+    /// both score `mask_proposal`.
+    #[test]
+    fn proposal_scores_count_attached_masks_and_member_scores_do_not() {
+        use profuse_metrics::cluster::{member_scores, proposal_scores};
+        let truth = [0, 0, 0, 1, 1];
+        let mut p = profuse_formats::Proposals {
+            mask_proposal: vec![0, 0, NONE, 1, 1].into(),
+            proposal_size: vec![2, 2].into(),
+            proposal_views: vec![1, 1].into(),
+            ..Default::default()
+        };
+        let members = member_scores(&p, &truth).unwrap();
+        // {0, 1}, {2}, {3, 4} against {0, 1, 2}, {3, 4}: index 2, rows 2, columns 4,
+        // expected 2 · 4 / 10 = 0.8: (2 − 0.8) / (3 − 0.8) = 6/11.
+        assert!(close(members.ari, 6.0 / 11.0), "{}", members.ari);
+        assert!(close(proposal_scores(&p, &truth).unwrap().ari, 6.0 / 11.0));
+        p.mask_instance = Some(vec![0, 0, 0, 1, 1].into());
+        let instances = proposal_scores(&p, &truth).unwrap();
+        assert!(close(instances.ari, 1.0) && close(instances.completeness, 1.0));
+        assert_eq!((instances.assigned, members.assigned), (5, 4));
+        assert!(close(member_scores(&p, &truth).unwrap().ari, 6.0 / 11.0));
+    }
+
     use super::*;
 
     #[test]

@@ -219,6 +219,9 @@ pub fn run_demo(
         "baseline_scannet_miou19": pick(base, "scannet_miou19"),
         "proposals_ari": pick(scores, "proposals_ari"),
         "ari": cluster("ari"),
+        "member_ari": scores
+            .get("proposal_members")
+            .map_or(Value::Null, |p| p["ari"].clone()),
         "purity": cluster("purity"),
         "completeness": cluster("completeness"),
         "wrong_class_pixel_share": pick(scores, "wrong_class_pixel_share"),

@@ -16,7 +16,8 @@ use crate::run::{fuse_job, Paths, RegisteredMasks, Summary};
 /// `init_median_surface_dist_rel` and `init_surface` (gt/scene.json; of the Gaussians the
 /// run registers onto: gs-init's, or gs-refine's when it runs — the key keeps its first
 /// name), `proposals_ari` and
-/// `proposals` (gt/mask_objects.json), `lerf_miou`, `lerf_acc25` and `lerf` (gt/label/),
+/// `proposals` (the object instances: members and attached masks) and `proposal_members`
+/// (the members alone) (gt/mask_objects.json), `lerf_miou`, `lerf_acc25` and `lerf` (gt/label/),
 /// `scannet_miou19/15/10`, `scannet_macc19/15/10` (gt/mesh.safetensors labels; each set
 /// from its own `vertex_labels_nyu<set>` file).
 /// Keys whose ground truth or stage output is absent are left out.
@@ -43,10 +44,16 @@ pub fn evaluate(p: &Paths) -> Result<BTreeMap<String, Value>> {
         let props = Proposals::read(&p.proposals).map_err(stage_err("evaluate"))?;
         let c = profuse_metrics::cluster::proposal_scores(&props, &truth)
             .map_err(stage_err("evaluate"))?;
+        let members = profuse_metrics::cluster::member_scores(&props, &truth)
+            .map_err(stage_err("evaluate"))?;
         s.insert("proposals_ari".into(), json!(c.ari));
         s.insert(
             "proposals".into(),
             serde_json::to_value(&c).unwrap_or(Value::Null),
+        );
+        s.insert(
+            "proposal_members".into(),
+            serde_json::to_value(&members).unwrap_or(Value::Null),
         );
     }
     if let (Some(dir), true) = (p.labels(), p.query.is_dir()) {

@@ -67,8 +67,11 @@ pub struct SweepRow {
     pub scannet_miou19: f64,
     /// The same for the baseline.
     pub baseline_scannet_miou19: f64,
-    /// Adjusted Rand index of the proposals against the masks' objects.
+    /// Adjusted Rand index of the proposals' object instances (members and attached
+    /// masks) against the masks' objects.
     pub ari: f64,
+    /// The same for the members alone (the masks pooled into each proposal).
+    pub member_ari: f64,
     /// Purity of the proposals.
     pub purity: f64,
     /// Completeness of the proposals.
@@ -127,6 +130,11 @@ impl SweepRow {
             scannet_miou19: get(s, "scannet_miou19", "proposals")?,
             baseline_scannet_miou19: get(b, "scannet_miou19", "baseline")?,
             ari: cluster("ari")?,
+            member_ari: s
+                .get("proposal_members")
+                .and_then(|p| p.get("ari"))
+                .and_then(Value::as_f64)
+                .ok_or_else(|| missing(&x.scene, "proposal_members", "ari"))?,
             purity: cluster("purity")?,
             completeness: cluster("completeness")?,
             wrong_class_pixel_share: get(s, "wrong_class_pixel_share", "proposals")?,
@@ -226,8 +234,10 @@ pub struct SweepMeans {
     pub rows_ahead_lerf_miou: usize,
     /// Mean of ProFuse's ScanNet mIoU (19 classes) minus the baseline's.
     pub mean_delta_scannet_miou19: f64,
-    /// Mean proposal ARI.
+    /// Mean proposal ARI (object instances).
     pub mean_ari: f64,
+    /// Mean ARI of the proposals' members alone.
+    pub mean_member_ari: f64,
     /// Mean proposal purity.
     pub mean_purity: f64,
     /// Mean proposal completeness.
@@ -267,6 +277,7 @@ impl SweepMeans {
             rows_ahead_lerf_miou: rows.iter().filter(|r| r.delta_lerf_miou() > 0.0).count(),
             mean_delta_scannet_miou19: mean(&SweepRow::delta_scannet_miou19),
             mean_ari: mean(&|r| r.ari),
+            mean_member_ari: mean(&|r| r.member_ari),
             mean_purity: mean(&|r| r.purity),
             mean_completeness: mean(&|r| r.completeness),
             mean_wrong_class_pixel_share: mean(&|r| r.wrong_class_pixel_share),
@@ -670,7 +681,7 @@ pub fn text_table(r: &SweepReport) -> String {
     let means = |s: &mut String, name: &str, m: &SweepMeans| {
         let _ = writeln!(
             s,
-            "{name:<19} rows {:>3}: mean Δ LERF mIoU {:+.2} (min {:+.2}, ahead in {}/{}), mean Δ ScanNet mIoU19 {:+.2}, ARI {:.3}, purity {:.3}, completeness {:.3}, wrong px {:.1}% vs {:.1}%",
+            "{name:<19} rows {:>3}: mean Δ LERF mIoU {:+.2} (min {:+.2}, ahead in {}/{}), mean Δ ScanNet mIoU19 {:+.2}, ARI {:.3} (members {:.3}), purity {:.3}, completeness {:.3}, wrong px {:.1}% vs {:.1}%",
             m.rows,
             m.mean_delta_lerf_miou,
             m.min_delta_lerf_miou,
@@ -678,6 +689,7 @@ pub fn text_table(r: &SweepReport) -> String {
             m.rows,
             m.mean_delta_scannet_miou19,
             m.mean_ari,
+            m.mean_member_ari,
             m.mean_purity,
             m.mean_completeness,
             100.0 * m.mean_wrong_class_pixel_share,
@@ -743,6 +755,7 @@ mod tests {
             scannet_miou19: 2.0,
             baseline_scannet_miou19: 1.0,
             ari: 0.5,
+            member_ari: 0.5,
             purity: 1.0,
             completeness: 0.25,
             wrong_class_pixel_share: 0.1,

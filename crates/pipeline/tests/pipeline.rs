@@ -244,6 +244,7 @@ fn given_proposals_replace_warp_graph() {
         proposal_size: Vec::<u32>::new().into(),
         proposal_views: Vec::<u32>::new().into(),
         mask_share: None,
+        mask_instance: None,
         extra: Default::default(),
     };
     let bad = dir.path().join("short.safetensors");

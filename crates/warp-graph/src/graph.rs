@@ -536,9 +536,24 @@ pub(crate) fn proposals_from_roots(
         proposal_size: proposal_size.into(),
         proposal_views: proposal_views.into(),
         mask_share: None,
+        mask_instance: None,
         extra: metadata,
     };
     (proposals, stats)
+}
+
+/// Every mask's instance: its proposal for a member; for a mask attached to the cluster
+/// of root mask r, r's proposal (none when that cluster was dropped); none otherwise.
+pub(crate) fn instances(mask_proposal: &[u32], attached: &[u32]) -> Vec<u32> {
+    mask_proposal
+        .iter()
+        .zip(attached)
+        .map(|(&p, &r)| match (p, r) {
+            (NO_PROPOSAL, NO_PROPOSAL) => NO_PROPOSAL,
+            (NO_PROPOSAL, r) => mask_proposal[r as usize],
+            (p, _) => p,
+        })
+        .collect()
 }
 
 #[cfg(test)]

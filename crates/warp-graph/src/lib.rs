@@ -593,6 +593,7 @@ impl<'a> Association<'a> {
             self.metadata(),
         );
         p.mask_share = Some(found.share.into());
+        p.mask_instance = Some(graph::instances(&p.mask_proposal, &found.attached).into());
         Ok((p, c, found.stats))
     }
 

@@ -11,7 +11,7 @@ use std::time::Instant;
 use clap::{Parser, Subcommand, ValueEnum};
 use profuse_bench::metrics as bench;
 use profuse_formats::{FileKind, Proposals, VertexLabels};
-use profuse_metrics::cluster::{proposal_scores, read_mask_objects};
+use profuse_metrics::cluster::{member_scores, proposal_scores, read_mask_objects};
 use profuse_metrics::lerf::{evaluate_scene, mean_over_scenes, read_label_dir, PredDir};
 use profuse_metrics::mask::OpenCvFill;
 use profuse_metrics::raster_cases;
@@ -104,8 +104,10 @@ enum Command {
         no_rows: bool,
     },
     /// 3D Context Proposals against synth's ground truth: adjusted Rand index, purity and
-    /// completeness of the mask -> proposal assignment (unassigned masks = singletons;
-    /// masks on no object excluded).
+    /// completeness of the mask -> instance assignment (`mask_instance`: members and
+    /// attached masks; `mask_proposal` when the file has none; unassigned masks =
+    /// singletons; masks on no object excluded), and under "members" the same for the
+    /// members alone.
     Proposals {
         /// Proposals file (profuse.proposals) written by warp-graph.
         #[arg(long)]
@@ -257,6 +259,7 @@ fn proposals_cmd(proposals: &Path, truth: &Path) -> Result<Value, BoxError> {
     let p = Proposals::read(proposals)?;
     let t = read_mask_objects(truth)?;
     let scores = proposal_scores(&p, &t).map_err(|e| format!("{}: {e}", proposals.display()))?;
+    let members = member_scores(&p, &t).map_err(|e| format!("{}: {e}", proposals.display()))?;
     let mut objects: Vec<u32> = t.iter().copied().filter(|&o| o != u32::MAX).collect();
     objects.sort_unstable();
     objects.dedup();
@@ -267,6 +270,7 @@ fn proposals_cmd(proposals: &Path, truth: &Path) -> Result<Value, BoxError> {
         obj.insert("masks".into(), t.len().into());
         obj.insert("proposals".into(), p.len().into());
         obj.insert("truth_objects".into(), objects.len().into());
+        obj.insert("members".into(), serde_json::to_value(&members)?);
     }
     Ok(v)
 }
