@@ -407,7 +407,7 @@ fn mask_votes(
             continue;
         }
         observed += 1;
-        let Some((&best, &n)) = counts.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))) else {
+        let Some((best, n)) = most(&counts) else {
             continue;
         };
         held += n;
@@ -842,21 +842,21 @@ fn attach(
                         *views.entry(root[n]).or_insert(0) += 1;
                     }
                 }
-                if let Some(r) = most(&views) {
+                if let Some((r, _)) = most(&views) {
                     *area.entry(r).or_insert(0) += u64::from(w);
                 }
             }
-            most(&area).unwrap_or(NONE)
+            most(&area).map_or(NONE, |(r, _)| r)
         })
         .collect()
 }
 
-/// The key with the largest count (ties: the smaller key).
-fn most<C: Ord + Copy>(counts: &HashMap<u32, C>) -> Option<u32> {
+/// The key with the largest count and that count (ties: the smaller key).
+fn most<C: Ord + Copy>(counts: &HashMap<u32, C>) -> Option<(u32, C)> {
     counts
         .iter()
         .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
-        .map(|(k, _)| *k)
+        .map(|(k, c)| (*k, *c))
 }
 
 #[cfg(test)]
