@@ -87,6 +87,10 @@ pub struct FlatParams {
     /// weight, see --consensus-point-weight) carry a label there.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.visible_ratio))]
     pub consensus_visible_ratio: f64,
+    /// Consensus: a view observes a mask only through at least this many of its points
+    /// (1: any), so that one large Gaussian does not make an observation.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.observed_points))]
+    pub consensus_observed_points: usize,
     /// Consensus: a mask is contained in a mask of another view when more than this share
     /// of its labelled points (by weight) there carry that mask's label.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.contained_ratio))]
@@ -163,6 +167,7 @@ impl From<FlatParams> for Params {
             grouping: f.grouping,
             consensus: ConsensusParams {
                 visible_ratio: f.consensus_visible_ratio,
+                observed_points: f.consensus_observed_points,
                 contained_ratio: f.consensus_contained_ratio,
                 undersegment_ratio: f.consensus_undersegment_ratio,
                 own_view_votes: f.consensus_own_view_votes,
@@ -197,6 +202,7 @@ impl From<Params> for FlatParams {
             extent_pad: p.extent_pad,
             grouping: p.grouping,
             consensus_visible_ratio: p.consensus.visible_ratio,
+            consensus_observed_points: p.consensus.observed_points,
             consensus_contained_ratio: p.consensus.contained_ratio,
             consensus_undersegment_ratio: p.consensus.undersegment_ratio,
             consensus_own_view_votes: p.consensus.own_view_votes,

@@ -712,6 +712,10 @@ impl<'a> Association<'a> {
                     c.visible_ratio.to_string(),
                 ),
                 (
+                    "consensus_observed_points".to_string(),
+                    c.observed_points.to_string(),
+                ),
+                (
                     "consensus_contained_ratio".to_string(),
                     c.contained_ratio.to_string(),
                 ),

@@ -315,6 +315,9 @@ impl Params {
                 return bad(name, v.to_string(), "a number in [0, 1]");
             }
         }
+        if c.observed_points == 0 {
+            return bad("consensus_observed_points", "0".into(), "an integer >= 1");
+        }
         if c.max_points == 0 {
             return bad("consensus_max_points", "0".into(), "an integer >= 1");
         }

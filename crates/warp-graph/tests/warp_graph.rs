@@ -998,6 +998,13 @@ fn inconsistent_inputs_are_typed_errors() {
             extent_pad: -0.1,
             ..plain()
         },
+        Params {
+            consensus: warp_graph::ConsensusParams {
+                observed_points: 0,
+                ..Default::default()
+            },
+            ..plain()
+        },
     ] {
         let e = build_proposals(Inputs::new(&m, &t), &p).unwrap_err();
         assert!(matches!(e, WarpGraphError::InvalidParameter { .. }), "{e}");
