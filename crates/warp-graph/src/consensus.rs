@@ -94,12 +94,11 @@
 //!    of the other views, with that one view against (`union_ratio` = 0 unites every
 //!    edge, the earlier rule).
 //!
-//! 7. **Shares.** Every mask's share s_m = (weight its best container holds) / (weight
-//!    labelled), both summed over the other views that observe it (1 where none does),
-//!    goes into the proposals file (`mask_share`); `fuse` weighs a member's mass by it,
-//!    so that the part of a mask on a neighbouring object (a sofa mask merged with the
-//!    cabinet beside it, not flagged because most views see only its sofa part) does not
-//!    enter the proposal's descriptor in full.
+//! 7. **Link merge** (`link_merge`, on by default). The accepted warp links between
+//!    clusters, strongest first, unite them where no view contradicts: no view contains
+//!    both, or the consensus rate still holds. Points are sparse on textureless surfaces,
+//!    so such masks are observed by few views, while the dense warps still see them
+//!    overlap (`merge_along_links`).
 //!
 //! 8. **Attached masks** (`mask_instance`). An under-segmented mask belongs to no
 //!    proposal, but it is still mostly one object: each of its points takes the cluster
@@ -114,6 +113,13 @@
 //!    a floor + cabinet mask's area but is labelled in fewer views (its masks are often
 //!    under-segmented themselves). Counted once per point, 21 of seed 12's 22 attached
 //!    masks go to their own object's proposal, summed over the views 18.
+//!
+//! 9. **Shares.** Every mask's share s_m = (weight its best container holds) / (weight
+//!    labelled), both summed over the other views that observe it (1 where none does),
+//!    goes into the proposals file (`mask_share`); `fuse` weighs a member's mass by it,
+//!    so that the part of a mask on a neighbouring object (a sofa mask merged with the
+//!    cabinet beside it, not flagged because most views see only its sofa part) does not
+//!    enter the proposal's descriptor in full.
 //!
 //! All counts are integers and every step runs in a fixed order, so the result does not
 //! depend on the thread count. Memory: one label per (point, view) as u32 (V · N · 4
