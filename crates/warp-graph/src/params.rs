@@ -315,14 +315,14 @@ impl Params {
                 return bad(name, v.to_string(), "a number in [0, 1]");
             }
         }
-        if c.observed_points == 0 {
-            return bad("consensus_observed_points", "0".into(), "an integer >= 1");
-        }
-        if c.max_points == 0 {
-            return bad("consensus_max_points", "0".into(), "an integer >= 1");
-        }
-        if self.depth_cache_views == 0 {
-            return bad("depth_cache_views", "0".into(), "an integer >= 1");
+        for (name, v) in [
+            ("consensus_observed_points", c.observed_points),
+            ("consensus_max_points", c.max_points),
+            ("depth_cache_views", self.depth_cache_views),
+        ] {
+            if v == 0 {
+                return bad(name, "0".into(), "an integer >= 1");
+            }
         }
         Ok(())
     }
