@@ -108,8 +108,8 @@ pub struct FlatParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.consensus))]
     pub consensus_threshold: f64,
     /// Consensus: within an iteration, two clusters are not united when the views
-    /// containing both put them in one mask less often than this share (a majority by
-    /// default); 0 unites every consistent pair.
+    /// containing both put them in one mask less often than this share (0.6: a tie, such
+    /// as two views of four, is refused); 0 unites every consistent pair.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = d().consensus.union_ratio))]
     pub consensus_union_ratio: f64,
     /// Consensus: most Gaussians tracked as points (every k-th beyond; all are rendered).
