@@ -80,9 +80,8 @@
 //!    union-find), and a union is refused when the two clusters *as they stand by then*
 //!    have observers and supporters < `union_ratio` · observers (0.6): fewer than three in
 //!    five of the views that contain both hold them in one mask. Each resulting cluster
-//!    becomes one node (visible views:
-//!    union; containers: union). Pairs seen together by many views are decided first, when
-//!    their evidence is strongest.
+//!    becomes one node (visible views: union; containers: union). Pairs seen together by
+//!    many views are decided first, when their evidence is strongest.
 //!
 //!    Why the check: consistency is a property of pairs, and uniting every consistent
 //!    pair at once is single linkage again. A mask that merges a bookshelf with the wall
@@ -95,10 +94,10 @@
 //!    masks of the other views, with that one view against (`union_ratio` = 0 unites every
 //!    edge, the earlier rule).
 //!
-//!    Why 0.6, not 0.5: at 0.5 a tie passes, and two clusters that half of the views
-//!    hold apart are one object no more often than two. On `harsh-segmentation` seed 9 a
-//!    chair's cluster (17 masks) and five south-wall masks, seen together by four views
-//!    and held in one mask by two of them (merged chair + wall masks), were united, and
+//!    Why 0.6, not 0.5: at 0.5 a tie passes, though half of the views that see both
+//!    clusters hold them apart. On `harsh-segmentation` seed 9 a chair's cluster (17
+//!    masks) and five south-wall masks, seen together by four views and held in one mask
+//!    by two of them (merged chair + wall masks), were united, and
 //!    the chair's vertices took *wall* (chair IoU 5.9 against the per-mask baseline's
 //!    44.2; ScanNet19 −4.23 → +1.00 at 0.6). At 0.6 two of four, one of two and three of
 //!    six are refused; two of three and three of five still unite (measured in the crate
