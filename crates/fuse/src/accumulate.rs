@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use splat_raster::NO_GAUSSIAN;
 
 use crate::error::{FuseError, Result};
-use crate::groups::NO_GROUP;
+use crate::groups::{weigh_hit, NO_GROUP, PIXEL_WEIGHT_ONE};
 
 /// Weights are stored as integers in units of 2^-62: `q = trunc(ω · 2^62)`. Every f32
 /// weight ω >= 2^-39 converts exactly (its 24-bit mantissa fits), and the rasterizer's
@@ -391,6 +391,9 @@ pub(crate) struct ViewContext<'a> {
     height: usize,
     /// Group of each of the view's masks (view-local index).
     groups: &'a [u32],
+    /// Pixel-weight factor of each of the view's masks (units of 2^-16,
+    /// [`crate::groups::Groups::pixel_weight`]); empty: every factor is 1.
+    pixel_weight: &'a [u32],
     /// Global id of the view's first mask.
     start: usize,
     k: usize,
@@ -476,7 +479,8 @@ impl Accumulator {
 
     /// Checks the view's mask range and label plane and returns what summing its tiles
     /// needs: labels `labels` on a grid of `width` columns, masks `offset..offset +
-    /// masks_in_view` with groups `mask_group[offset..]`, lists of K = `k`.
+    /// masks_in_view` with groups `mask_group[offset..]` and pixel-weight factors
+    /// `pixel_weight[offset..]` (empty: all 1), lists of K = `k`.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn view_context<'a>(
         &self,
@@ -484,6 +488,7 @@ impl Accumulator {
         width: usize,
         offset: u32,
         mask_group: &'a [u32],
+        pixel_weight: &'a [u32],
         masks_in_view: usize,
         k: usize,
         view: usize,
@@ -498,6 +503,19 @@ impl Accumulator {
                 start + masks_in_view
             ));
         };
+        let pixel_weight = if pixel_weight.is_empty() {
+            pixel_weight
+        } else {
+            pixel_weight
+                .get(start..start + masks_in_view)
+                .ok_or_else(|| {
+                    format!(
+                        "view {view}: masks {start}..{} are beyond the {} pixel weights",
+                        start + masks_in_view,
+                        pixel_weight.len()
+                    )
+                })?
+        };
         let pixels = labels.len();
         if width == 0 || !pixels.is_multiple_of(width) {
             return Err(format!(
@@ -509,6 +527,7 @@ impl Accumulator {
             width,
             height: pixels / width,
             groups,
+            pixel_weight,
             start,
             k,
             num_gaussians: self.num_gaussians,
@@ -558,6 +577,7 @@ impl Accumulator {
         &mut self,
         hits: &ViewHits<'_>,
         mask_group: &[u32],
+        pixel_weight: &[u32],
         masks_in_view: usize,
         view: usize,
     ) -> Result<HitCounts, String> {
@@ -566,6 +586,7 @@ impl Accumulator {
             hits.width,
             hits.offset,
             mask_group,
+            pixel_weight,
             masks_in_view,
             hits.k,
             view,
@@ -741,8 +762,11 @@ impl ViewContext<'_> {
                     return;
                 };
                 let records = &mut out.records;
+                let factor = self.pixel_factor(local);
                 let summed = self.pixel_hits(ids, ws, |_, g, q| {
-                    if group != NO_GROUP {
+                    // A factor can floor a weight to 0: W keeps nonzero sums only.
+                    let q = weigh_hit(q, factor);
+                    if group != NO_GROUP && q != 0 {
                         table.add(g, group, q, records);
                     }
                     Ok(())
@@ -763,6 +787,15 @@ impl ViewContext<'_> {
             }
         }
         table.flush(&mut out.records);
+    }
+
+    /// The pixel-weight factor of the view's mask `local` (1 without factors).
+    #[inline]
+    fn pixel_factor(&self, local: usize) -> u32 {
+        self.pixel_weight
+            .get(local)
+            .copied()
+            .unwrap_or(PIXEL_WEIGHT_ONE)
     }
 
     /// One pixel's list (`ids`, `ws`, up to the first padding entry): its summed fixed-point
@@ -869,8 +902,10 @@ impl ViewContext<'_> {
                     return true;
                 };
                 let sums = &mut dense.sums;
+                let factor = self.pixel_factor(mask);
                 let summed = self.pixel_hits(ids, ws, |rank, g, q| {
-                    if code == UNGROUPED {
+                    let q = weigh_hit(q, factor);
+                    if code == UNGROUPED || q == 0 {
                         return Ok(());
                     }
                     let at = ats[rank];
@@ -1014,8 +1049,9 @@ mod tests {
     use super::*;
 
     /// Random views with many distinct (Gaussian, group) pairs per tile (so tile tables
-    /// flush), ids over several blocks, unlabelled and ungrouped pixels, padded slots:
-    /// W and the masses equal a map-based reference.
+    /// flush), ids over several blocks, unlabelled and ungrouped pixels, padded slots, and
+    /// per-mask pixel-weight factors (0, 1 and fractions): W (each hit's q times its
+    /// mask's factor, floored) and the masses (unweighted) equal a map-based reference.
     #[test]
     fn accumulator_equals_a_map_reference() {
         let (n, w, h, k) = (3 * BLOCK_LEN + 17, 37, 21, 6);
@@ -1023,6 +1059,13 @@ mod tests {
         let views = 3;
         let mask_group: Vec<u32> = (0..views * masks_per_view)
             .map(|m| if m % 4 == 3 { NO_GROUP } else { (m % 6) as u32 })
+            .collect();
+        let factors: Vec<u32> = (0..views * masks_per_view)
+            .map(|m| match m % 3 {
+                0 => PIXEL_WEIGHT_ONE,
+                1 => 0,
+                _ => 1 + 4099 * m as u32,
+            })
             .collect();
         let mut acc = Accumulator::new(n, mask_group.len(), 6);
         let mut w_ref: BTreeMap<(u32, u32), u128> = BTreeMap::new();
@@ -1056,8 +1099,9 @@ mod tests {
                         break;
                     }
                     mass_ref[m] += u128::from(q);
-                    if mask_group[m] != NO_GROUP && q > 0 {
-                        *w_ref.entry((g, mask_group[m])).or_default() += u128::from(q);
+                    let weighed = u128::from(q) * u128::from(factors[m]) / 65_536;
+                    if mask_group[m] != NO_GROUP && weighed > 0 {
+                        *w_ref.entry((g, mask_group[m])).or_default() += weighed;
                     }
                 }
             }
@@ -1069,7 +1113,8 @@ mod tests {
                 weights: &weights,
                 k,
             };
-            acc.add_view(&hits, &mask_group, masks_per_view, v).unwrap();
+            acc.add_view(&hits, &mask_group, &factors, masks_per_view, v)
+                .unwrap();
         }
         assert_eq!(acc.nnz(), w_ref.len());
         let (matrix, mass) = acc.finish().unwrap();
@@ -1233,9 +1278,22 @@ mod tests {
             }
         }
         tamper(&mut positions, &mut labels, &mut splat_ids);
+        // Pixel-weight factors: 1, 0 and fractions.
+        let factors: Vec<u32> = (0..masks)
+            .map(|m| [PIXEL_WEIGHT_ONE, 0, 40_000, 1][m % 4])
+            .collect();
         let acc = Accumulator::new(n, masks, groups);
         let ctx = acc
-            .view_context(LabelPlane::U16(&labels), w, 0, &mask_group, masks, k, 0)
+            .view_context(
+                LabelPlane::U16(&labels),
+                w,
+                0,
+                &mask_group,
+                &factors,
+                masks,
+                k,
+                0,
+            )
             .unwrap();
         [Some(&positions[..]), None].map(|positions| {
             let mut out = RowOutput::default();
@@ -1324,20 +1382,20 @@ mod tests {
             weights: &[0.5; 3],
             k: 1,
         };
-        assert!(acc.add_view(&hits, &[0, 1], 2, 0).is_err());
+        assert!(acc.add_view(&hits, &[0, 1], &[], 2, 0).is_err());
         let hits = ViewHits {
             ids: &[0, 1, 2, 11],
             weights: &[0.5; 4],
             ..hits
         };
-        let err = acc.add_view(&hits, &[0, 1], 2, 0).unwrap_err();
+        let err = acc.add_view(&hits, &[0, 1], &[], 2, 0).unwrap_err();
         assert!(err.contains("Gaussian 11"), "{err}");
         let hits = ViewHits {
             labels: LabelPlane::U16(&[0, 1, 2, 0]),
             ids: &[0, 1, 2, 3],
             ..hits
         };
-        let err = acc.add_view(&hits, &[0, 1], 2, 0).unwrap_err();
+        let err = acc.add_view(&hits, &[0, 1], &[], 2, 0).unwrap_err();
         assert!(err.contains("label 2"), "{err}");
     }
 }

@@ -11,6 +11,9 @@ pub enum FuseError {
     /// The semantic index's `min_share` is not a share in [0, 1].
     #[error("fuse min_share = {0}: expected a share in [0, 1]")]
     MinShare(f64),
+    /// The exponent of the members' pixel weights is negative or not finite.
+    #[error("fuse pixel_share_power = {0}: expected a finite number >= 0")]
+    PixelSharePower(f64),
     /// A file could not be read or written, or breaks a rule of its kind (SPEC.md), or a
     /// partial-sums file breaks a rule of its layout (see [`crate::PartialSums`]).
     #[error(transparent)]

@@ -512,6 +512,12 @@ pub(crate) fn run_metadata(p: &PartialSums) -> BTreeMap<String, String> {
             MemberWeight::Share.name().into(),
         );
     }
+    if p.groups.pixel_share_power > 0.0 {
+        meta.insert(
+            crate::partial::PIXEL_SHARE_POWER_KEY.to_string(),
+            p.groups.pixel_share_power.to_string(),
+        );
+    }
     meta
 }
 

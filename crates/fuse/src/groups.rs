@@ -142,6 +142,25 @@ pub struct Groups {
     /// its mass is weighed in its proposal's descriptor ([`MemberWeight::Share`]); empty:
     /// every member weighs its mass. Always empty for [`Grouping::Masks`].
     pub mask_share: Vec<f32>,
+    /// The factor of every global mask's pixel weights ω in W, in units of 2^-16
+    /// ([`PIXEL_WEIGHT_ONE`] = 1): s_m^e for a member of a proposal, with s_m its share
+    /// and e [`Groups::pixel_share_power`], 1 for an orphan ([`Groups::with_pixel_shares`]).
+    /// Empty: every pixel weighs ω (the paper). Only the accumulation reads it; partial
+    /// files keep e, not the factors, whose sums W already holds.
+    pub pixel_weight: Vec<u32>,
+    /// The exponent e of the members' pixel weights s_m^e in W; 0: the paper's ω.
+    pub pixel_share_power: f64,
+}
+
+/// The pixel-weight factor 1 of [`Groups::pixel_weight`] (units of 2^-16).
+pub const PIXEL_WEIGHT_ONE: u32 = 1 << 16;
+
+/// One hit's fixed-point weight `q` times a pixel-weight factor (units of 2^-16),
+/// truncated: exact integer arithmetic, so sums stay independent of order and split, and
+/// a factor of [`PIXEL_WEIGHT_ONE`] returns `q` itself.
+#[inline]
+pub(crate) fn weigh_hit(q: u64, factor: u32) -> u64 {
+    ((u128::from(q) * u128::from(factor)) >> 16) as u64
 }
 
 impl Groups {
@@ -171,7 +190,43 @@ impl Groups {
             num_groups,
             mask_proposal: Vec::new(),
             mask_share: member_shares(proposals, weight),
+            pixel_weight: Vec::new(),
+            pixel_share_power: 0.0,
         })
+    }
+
+    /// Weighs every member mask's pixels in W by s_m^`power`, s_m the proposals file's
+    /// `mask_share` (a deviation from the paper, issue 16): a member the other views find
+    /// only partly on its proposal's object (a chair mask that runs onto the floor) then
+    /// registers its proposal's descriptor with less weight on every Gaussian it covers,
+    /// so that where it overlaps the neighbour the neighbour's own masks decide. Orphans
+    /// keep weight 1 (they register their own feature, as the baseline does). `power` 0,
+    /// a file without shares or [`Grouping::Masks`] leave the paper's weights. The
+    /// factors are quantised to 2^-16.
+    pub fn with_pixel_shares(mut self, proposals: &Proposals, power: f64) -> Result<Groups> {
+        if !(power.is_finite() && power >= 0.0) {
+            return Err(crate::FuseError::PixelSharePower(power));
+        }
+        let Some(shares) = &proposals.mask_share else {
+            return Ok(self);
+        };
+        if power == 0.0 || self.grouping == Grouping::Masks {
+            return Ok(self);
+        }
+        self.pixel_weight = proposals
+            .mask_proposal
+            .iter()
+            .zip(shares.iter())
+            .map(|(p, s)| {
+                if *p == NO_PROPOSAL {
+                    PIXEL_WEIGHT_ONE
+                } else {
+                    pixel_factor(f64::from(*s), power)
+                }
+            })
+            .collect();
+        self.pixel_share_power = power;
+        Ok(self)
     }
 
     /// [`Grouping::Blend`]: every mask is its own group (orphans too with
@@ -193,6 +248,8 @@ impl Groups {
             num_groups: mask_proposal.len(),
             mask_proposal,
             mask_share: member_shares(proposals, weight),
+            pixel_weight: Vec::new(),
+            pixel_share_power: 0.0,
         })
     }
 
@@ -205,6 +262,8 @@ impl Groups {
             num_groups: m,
             mask_proposal: Vec::new(),
             mask_share: Vec::new(),
+            pixel_weight: Vec::new(),
+            pixel_share_power: 0.0,
         }
     }
 
@@ -257,6 +316,18 @@ impl Groups {
                 ));
             }
         }
+        if !self.pixel_weight.is_empty() && self.pixel_weight.len() != num_masks {
+            return Err(format!(
+                "{} pixel weights for {num_masks} masks",
+                self.pixel_weight.len()
+            ));
+        }
+        if let Some(m) = self.pixel_weight.iter().position(|w| *w > PIXEL_WEIGHT_ONE) {
+            return Err(format!(
+                "mask {m}'s pixel weight {} is above 1",
+                f64::from(self.pixel_weight[m]) / f64::from(PIXEL_WEIGHT_ONE)
+            ));
+        }
         match self
             .mask_group
             .iter()
@@ -288,6 +359,12 @@ impl Groups {
     pub fn share(&self, m: usize) -> f64 {
         self.mask_share.get(m).map_or(1.0, |s| f64::from(*s))
     }
+}
+
+/// s^e in units of 2^-16, rounded, with s clamped to [0, 1].
+fn pixel_factor(share: f64, power: f64) -> u32 {
+    let f = share.clamp(0.0, 1.0).powf(power) * f64::from(PIXEL_WEIGHT_ONE);
+    (f.round() as u32).min(PIXEL_WEIGHT_ONE)
 }
 
 /// The proposals' shares under `weight` (none for [`MemberWeight::Mass`] or a file

@@ -65,6 +65,10 @@ pub struct Params {
     /// What a member mask weighs in its proposal's descriptor: `share` (its mass times
     /// the proposals file's `mask_share`, where the file has one) or `mass` (the paper).
     pub member_weight: MemberWeight,
+    /// The exponent e of a member mask's pixel weights in W: every hit of a pixel of
+    /// member m weighs ω · s_m^e, s_m the proposals file's `mask_share` (orphans weigh ω);
+    /// 0 is the paper (ω alone). Finite, >= 0.
+    pub pixel_share_power: f64,
     /// Semantic index: the smallest share of a Gaussian's weight its largest proposal
     /// must hold to be its dominant proposal (in [0, 1]; stored in units of 1/255).
     pub min_share: f64,
@@ -78,6 +82,7 @@ impl Default for Params {
             no_proposals: false,
             registration: Register::default(),
             member_weight: MemberWeight::default(),
+            pixel_share_power: crate::DEFAULT_PIXEL_SHARE_POWER,
             min_share: crate::DEFAULT_MIN_SHARE,
         }
     }
@@ -253,7 +258,7 @@ fn name(p: &Path) -> String {
 /// Runs a job: reads the inputs, accumulates over the views (calling `on_view` after
 /// each), writes the partial sums and/or the features (atomically), and reports.
 pub fn run(job: &Job, params: &Params, on_view: &mut dyn FnMut(&ViewReport)) -> Result<Run> {
-    check_min_share(params)?;
+    check_params(params)?;
     let t0 = Instant::now();
     let gaussians = Gaussians::read(&job.gaussians)?;
     let cameras = Cameras::read(&job.cameras)?;
@@ -291,7 +296,7 @@ pub fn run(job: &Job, params: &Params, on_view: &mut dyn FnMut(&ViewReport)) -> 
 /// of the masks, the mask features), so a shard left over from other inputs is refused
 /// ([`crate::FuseError::ShardOfOtherInputs`]) instead of being summed.
 pub fn run_merged(job: &Job, params: &Params, partials: &[PathBuf]) -> Result<Run> {
-    check_min_share(params)?;
+    check_params(params)?;
     let t0 = Instant::now();
     let gaussians = Gaussians::read(&job.gaussians)?;
     let cameras = Cameras::read(&job.cameras)?;
@@ -387,13 +392,17 @@ fn write_features(
     Ok(())
 }
 
-/// `min_share` must be a share, checked before anything is read or written.
-fn check_min_share(params: &Params) -> Result<()> {
-    if (0.0..=1.0).contains(&params.min_share) {
-        Ok(())
-    } else {
-        Err(crate::FuseError::MinShare(params.min_share))
+/// `min_share` must be a share and `pixel_share_power` a finite number >= 0, checked
+/// before anything is read or written.
+fn check_params(params: &Params) -> Result<()> {
+    if !(0.0..=1.0).contains(&params.min_share) {
+        return Err(crate::FuseError::MinShare(params.min_share));
     }
+    let e = params.pixel_share_power;
+    if !(e.is_finite() && e >= 0.0) {
+        return Err(crate::FuseError::PixelSharePower(e));
+    }
+    Ok(())
 }
 
 /// Writes the job's semantic index (if it names one) from the same sums as its features.
@@ -429,7 +438,8 @@ fn job_groups(job: &Job, params: &Params, masks: &Masks) -> Result<Groups> {
                 params.orphans,
                 params.member_weight,
                 &name(path),
-            )
+            )?
+            .with_pixel_shares(&proposals, params.pixel_share_power)
         }
         _ => Ok(Groups::per_mask(masks)),
     }

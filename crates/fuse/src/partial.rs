@@ -170,6 +170,13 @@ impl PartialSums {
             ),
             ("weight_scale".to_string(), "2^-62".to_string()),
         ]);
+        let mut extra = extra;
+        if self.groups.pixel_share_power > 0.0 {
+            extra.insert(
+                PIXEL_SHARE_POWER_KEY.to_string(),
+                self.groups.pixel_share_power.to_string(),
+            );
+        }
         let words = |values: &[u128]| -> Vec<[u64; 2]> {
             values.iter().map(|v| fixed_point_words(*v)).collect()
         };
@@ -212,11 +219,14 @@ impl PartialSums {
     /// layout, index ranges, sorted rows, nonzero sums, finite features, the grouping's
     /// rules). Errors name the file and the tensor or key.
     pub fn read(path: impl AsRef<Path>) -> Result<PartialSums> {
-        Ok(PartialSums::from_file(FusePartial::read(path)?))
+        let path = path.as_ref();
+        let f = FusePartial::read(path)?;
+        let power = pixel_share_power(&f, path)?;
+        Ok(PartialSums::from_file(f, power))
     }
 
-    /// The sums of a validated file.
-    fn from_file(f: FusePartial) -> PartialSums {
+    /// The sums of a validated file whose members' pixels weighed s^`power`.
+    fn from_file(f: FusePartial, power: f64) -> PartialSums {
         let grouping = match f.grouping {
             FuseGrouping::Proposals { orphans } => Grouping::Proposals {
                 orphans: fuse_orphans(orphans),
@@ -239,6 +249,9 @@ impl PartialSums {
                 num_groups: f.num_groups,
                 mask_proposal: f.mask_proposal.map(|p| p.to_vec()).unwrap_or_default(),
                 mask_share: f.mask_share.map(|s| s.to_vec()).unwrap_or_default(),
+                // W already holds the weighed sums; only the exponent is kept.
+                pixel_weight: Vec::new(),
+                pixel_share_power: power,
             },
             mask_features: f.mask_features,
             dim: f.dim,
@@ -326,6 +339,28 @@ pub fn merge(parts: &[PartialSums], names: &[String]) -> Result<PartialSums> {
     })
 }
 
+/// The metadata key of [`crate::Groups::pixel_share_power`] in partial and features
+/// files (absent: 0, the paper's pixel weights).
+pub(crate) const PIXEL_SHARE_POWER_KEY: &str = "pixel_share_power";
+
+/// The exponent of the members' pixel weights a partial file's W was summed with.
+fn pixel_share_power(f: &FusePartial, path: &Path) -> Result<f64> {
+    let Some(text) = f.extra.get(PIXEL_SHARE_POWER_KEY) else {
+        return Ok(0.0);
+    };
+    match text.parse::<f64>() {
+        Ok(e) if e.is_finite() && e > 0.0 => Ok(e),
+        _ => Err(profuse_formats::FormatError::Metadata {
+            path: path.display().to_string(),
+            key: PIXEL_SHARE_POWER_KEY.to_string(),
+            expected: format!(
+                "a finite number > 0 (the exponent of the members' pixel weights), got `{text}`"
+            ),
+        }
+        .into()),
+    }
+}
+
 /// What every partial sum of one job shares: its inputs' sizes, K, the grouping of the
 /// masks and the mask features.
 pub(crate) struct JobFacts<'a> {
@@ -377,6 +412,7 @@ pub(crate) fn compare_facts(
             ("grouping", p.groups.grouping.name().to_string()),
             ("orphans", p.groups.grouping.orphans_name().to_string()),
             ("num_groups", p.groups.num_groups.to_string()),
+            ("pixel_share_power", p.groups.pixel_share_power.to_string()),
             ("mask_features", format!("[{}, {}]", p.num_masks, p.dim)),
         ]
     };

@@ -160,6 +160,19 @@ fn reference(
     groups: &RefGroups,
     k: usize,
 ) -> Reference {
+    reference_weighed(g, cams, masks, groups, k, &[])
+}
+
+/// [`reference`] with every hit of a pixel of mask m adding `factor[m]` ω f̄ to A[g] and
+/// `factor[m]` ω to S[g] (empty: 1); the masses stay Σ ω.
+fn reference_weighed(
+    g: &Gaussians,
+    cams: &Cameras,
+    masks: &Masks,
+    groups: &RefGroups,
+    k: usize,
+    factor: &[f64],
+) -> Reference {
     let raster = Rasterizer::new(g).unwrap();
     let opts = RenderOptions {
         color: false,
@@ -280,7 +293,10 @@ fn reference(
         let Some(desc) = mask_at(v, x, y).and_then(|m| desc_of[m].as_ref()) else {
             continue;
         };
+        let m = mask_at(v, x, y).unwrap_or(0);
+        let scale = factor.get(m).copied().unwrap_or(1.0);
         for (id, w) in hits(v, x, y) {
+            let w = w * scale;
             for (ai, fi) in a[id].iter_mut().zip(desc) {
                 *ai += w * fi;
             }
@@ -373,6 +389,87 @@ fn assert_matches(reg: &profuse_fuse::Registration, r: &Reference) -> usize {
 
 // ---------------------------------------------------------------------------------------
 // Agreement with the reference.
+
+/// Member pixels weighed by s_m^e (`Groups::with_pixel_shares`): W and S are the
+/// brute-force sums of ω · s_m^e (factors rounded to 2^-16 as documented), orphans weigh ω,
+/// the masses stay Σ ω (the descriptors, pooled by mass, are the paper's), and e = 0 or a
+/// file without shares leaves the paper's bytes.
+#[test]
+fn member_pixels_weighed_by_their_shares_match_the_brute_force_reference() {
+    let fx = tiny(3, 9000);
+    let mut proposals = fx.proposals_without_first();
+    let shares: Vec<f32> = (0..fx.masks.num_masks())
+        .map(|m| 0.25 + 0.75 * ((m * 37) % 11) as f32 / 10.0)
+        .collect();
+    proposals.mask_share = Some(shares.clone().into());
+    let power = 2.0;
+    let mass_groups = |p: &Proposals| {
+        Groups::from_proposals(&fx.masks, p, Orphans::Singleton, MemberWeight::Mass, "p").unwrap()
+    };
+    let groups = mass_groups(&proposals)
+        .with_pixel_shares(&proposals, power)
+        .unwrap();
+    let orphans = proposals
+        .mask_proposal
+        .iter()
+        .filter(|p| **p == NO_GROUP)
+        .count();
+    assert!(orphans > 0, "no orphans");
+    let factor: Vec<f64> = proposals
+        .mask_proposal
+        .iter()
+        .zip(&shares)
+        .map(|(p, s)| {
+            if *p == NO_GROUP {
+                1.0
+            } else {
+                (f64::from(*s).powf(power) * 65536.0).round() / 65536.0
+            }
+        })
+        .collect();
+    assert!(factor.iter().any(|f| *f < 0.2) && factor.contains(&1.0));
+    let reg = fuse(&fx.scene(), &groups, &f32_opts()).unwrap();
+    let r = reference_weighed(
+        &fx.gaussians,
+        &fx.cameras,
+        &fx.masks,
+        &pooled_groups(&groups),
+        10,
+        &factor,
+    );
+    assert!(assert_matches(&reg, &r) > 1000);
+    assert_eq!(
+        reg.features
+            .extra
+            .get("pixel_share_power")
+            .map(String::as_str),
+        Some("2")
+    );
+    // The weighing changes the features, and e = 0 or no shares give the paper's bytes.
+    let paper = fuse(&fx.scene(), &mass_groups(&proposals), &f32_opts()).unwrap();
+    assert_ne!(paper.features.features, reg.features.features);
+    let zero = mass_groups(&proposals)
+        .with_pixel_shares(&proposals, 0.0)
+        .unwrap();
+    assert!(zero.pixel_weight.is_empty());
+    let unshared = fx.proposals_without_first();
+    let none = mass_groups(&unshared)
+        .with_pixel_shares(&unshared, power)
+        .unwrap();
+    assert!(none.pixel_weight.is_empty());
+    for g in [zero, none] {
+        let f = fuse(&fx.scene(), &g, &f32_opts()).unwrap().features;
+        assert_eq!(f.features, paper.features.features);
+        assert!(!f.extra.contains_key("pixel_share_power"));
+    }
+    // Negative or non-finite exponents are refused.
+    for bad in [-1.0, f64::NAN, f64::INFINITY] {
+        let err = mass_groups(&proposals)
+            .with_pixel_shares(&proposals, bad)
+            .unwrap_err();
+        assert!(matches!(err, FuseError::PixelSharePower(_)), "{err}");
+    }
+}
 
 #[test]
 fn proposals_match_the_brute_force_reference() {

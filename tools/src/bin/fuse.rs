@@ -93,7 +93,7 @@ struct RunArgs {
     #[arg(long, required_unless_present = "no_proposals")]
     proposals: Option<PathBuf>,
     /// No proposals: every mask registers its own feature (the Dr. Splat-style baseline).
-    #[arg(long, conflicts_with_all = ["proposals", "orphans", "registration", "member_weight"])]
+    #[arg(long, conflicts_with_all = ["proposals", "orphans", "registration", "member_weight", "pixel_share_power"])]
     no_proposals: bool,
     /// What a mask's pixels register. `proposals` (paper): the proposal's descriptor
     /// f̄_P = normalise(Σ μ_k f_k over its masks). `blend`: per mask m,
@@ -111,6 +111,14 @@ struct RunArgs {
     /// has no shares. `mass`: μ_k (the paper's eq. proposal-desc).
     #[arg(long, value_enum, default_value = "share")]
     member_weight: MemberWeight,
+    /// The exponent e of a member mask's pixel weights in W: every top-K hit of a pixel of
+    /// member m weighs ω · s_m^e, s_m the proposals file's `mask_share`, so a mask the
+    /// other views find partly on a neighbouring object (a chair mask running onto the
+    /// floor) registers its proposal's descriptor with less weight everywhere, and where
+    /// it overlaps the neighbour that object's own masks decide. Orphans weigh ω. 0: the
+    /// paper (ω alone; also when the file has no shares). Finite, >= 0.
+    #[arg(long, default_value_t = profuse_fuse::DEFAULT_PIXEL_SHARE_POWER)]
+    pixel_share_power: f64,
     /// The features file to write (profuse.features: descriptors, valid, weight_sum).
     #[arg(long, required_unless_present = "partial_out")]
     out: Option<PathBuf>,
@@ -242,6 +250,7 @@ fn run_command(a: RunArgs, show: bool) -> Result<Value, BoxError> {
         no_proposals: a.no_proposals,
         registration: a.registration,
         member_weight: a.member_weight,
+        pixel_share_power: a.pixel_share_power,
         min_share: a.min_share,
     };
     let bar = view_bar(show, views as u64);
