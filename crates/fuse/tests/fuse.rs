@@ -1869,3 +1869,74 @@ fn job_writes_the_semantic_index_and_refuses_a_bad_min_share() {
         assert_eq!(index.proposal(g).is_some(), features.valid[g] == 1, "g {g}");
     }
 }
+
+/// Merged masks (synth `p_merge` 0.5: a mask spanning two objects, put in its dominant
+/// object's proposal) with the share a perfect consensus would write (their purity): under
+/// the paper's ω a merged member paints its proposal's descriptor over the part of the
+/// neighbour it covers; with pixels weighing ω · s^4 (the default exponent) more Gaussians
+/// keep their own class (nearest class centroid of the clean masks' features).
+#[test]
+fn merged_members_paint_fewer_neighbours_when_pixels_weigh_their_share() {
+    let fx = tiny_with(14, 3000, |c| {
+        c.faults.p_merge = 0.5;
+        c.faults.p_wrong_class = 0.0;
+    });
+    let d = fx.masks.dim;
+    let json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(fx.path.join("gt/mask_objects.json")).unwrap(),
+    )
+    .unwrap();
+    let entries = json["masks"].as_array().unwrap();
+    let class_of_mask: Vec<Option<i64>> = entries.iter().map(|e| e["class_id"].as_i64()).collect();
+    let purity: Vec<f32> = entries
+        .iter()
+        .map(|e| (e["purity"].as_f64().unwrap_or(1.0) as f32).clamp(0.01, 1.0))
+        .collect();
+    let merged = purity.iter().filter(|p| **p < 0.9).count();
+    assert!(merged >= 5, "{merged} merged masks");
+    let proposals = Proposals {
+        mask_share: Some(purity.clone().into()),
+        ..fx.proposals(1)
+    };
+    // Class centroids of the pure masks' features.
+    let mut centroids: std::collections::BTreeMap<i64, Vec<f64>> = Default::default();
+    for (m, c) in class_of_mask.iter().enumerate() {
+        if let (Some(c), true) = (c, purity[m] >= 0.95) {
+            let row = centroids.entry(*c).or_insert_with(|| vec![0.0; d]);
+            for (j, x) in row.iter_mut().enumerate() {
+                *x += f64::from(fx.masks.features.get(m * d + j));
+            }
+        }
+    }
+    let classes = fx.gaussians.class_ids.as_ref().unwrap();
+    let wrong = |power: f64| {
+        let groups = share_groups(&fx.masks, &proposals, Orphans::Ignore)
+            .with_pixel_shares(&proposals, power)
+            .unwrap();
+        let f = fuse(&fx.scene(), &groups, &f32_opts()).unwrap().features;
+        let mut wrong = 0;
+        for g in 0..fx.gaussians.len() {
+            let class = i64::from(classes[g]);
+            if f.valid[g] == 0 || !centroids.contains_key(&class) {
+                continue;
+            }
+            let row: Vec<f64> = (0..d)
+                .map(|j| f64::from(f.features.get(g * d + j)))
+                .collect();
+            let best = centroids
+                .iter()
+                .max_by(|x, y| {
+                    let dot = |c: &[f64]| c.iter().zip(&row).map(|(a, b)| a * b).sum::<f64>();
+                    dot(x.1).total_cmp(&dot(y.1))
+                })
+                .map(|(c, _)| *c);
+            wrong += usize::from(best != Some(class));
+        }
+        wrong
+    };
+    let (paper, weighed) = (wrong(0.0), wrong(profuse_fuse::DEFAULT_PIXEL_SHARE_POWER));
+    eprintln!(
+        "Gaussians off their class: paper {paper}, weighed {weighed} ({merged} merged masks)"
+    );
+    assert!(weighed * 4 < paper * 3, "{paper} {weighed}");
+}
