@@ -102,6 +102,13 @@ impl Fixture {
         share_blend(&self.masks, &self.proposals_without_first(), orphans)
     }
 
+    /// The entries of `gt/mask_objects.json`, one per mask.
+    fn mask_objects(&self) -> Vec<serde_json::Value> {
+        let text = std::fs::read_to_string(self.path.join("gt/mask_objects.json")).unwrap();
+        let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+        json["masks"].as_array().unwrap().clone()
+    }
+
     fn scene(&self) -> Scene<'_> {
         Scene::new(&self.gaussians, &self.cameras, &self.masks)
     }
@@ -895,13 +902,8 @@ fn an_impure_proposal_does_not_poison_its_minority_under_blend() {
         c.faults.p_wrong_class = 0.0;
     });
     let d = fx.masks.dim;
-    let json: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(fx.path.join("gt/mask_objects.json")).unwrap(),
-    )
-    .unwrap();
-    let class_of_mask: Vec<Option<i64>> = json["masks"]
-        .as_array()
-        .unwrap()
+    let class_of_mask: Vec<Option<i64>> = fx
+        .mask_objects()
         .iter()
         .map(|e| e["class_id"].as_i64())
         .collect();
@@ -1882,11 +1884,7 @@ fn merged_members_paint_fewer_neighbours_when_pixels_weigh_their_share() {
         c.faults.p_wrong_class = 0.0;
     });
     let d = fx.masks.dim;
-    let json: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(fx.path.join("gt/mask_objects.json")).unwrap(),
-    )
-    .unwrap();
-    let entries = json["masks"].as_array().unwrap();
+    let entries = fx.mask_objects();
     let class_of_mask: Vec<Option<i64>> = entries.iter().map(|e| e["class_id"].as_i64()).collect();
     let purity: Vec<f32> = entries
         .iter()
