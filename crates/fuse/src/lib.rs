@@ -65,6 +65,15 @@
 //!   their proposal's descriptor row, so where every mask is that coherent the result has
 //!   the paper's bytes. The masses (hence d_m) are final only after the last view, so the
 //!   blend is formed in [`finish`], and partial files keep the masks' proposals.
+//! * **Member pixels weighed by their share (a deviation from the paper,
+//!   [`Groups::with_pixel_shares`], default exponent [`DEFAULT_PIXEL_SHARE_POWER`]).** A
+//!   member mask that runs onto a neighbouring object would register its proposal's pooled
+//!   descriptor there, which answers its class far more sharply than the neighbour's own
+//!   evidence and so wins every contact. Each hit of member m adds ω · s_m^e instead of ω,
+//!   s_m the proposals' `mask_share`: a mask the other views find partly off its object
+//!   counts less wherever others also see the Gaussian (alone, its weight cancels in
+//!   A / S). The factor is an integer in units of 2^-16 and each fixed-point hit is
+//!   floored after the product, so sums stay exact and order-free.
 //! * **Views without masks** are not rendered (they cannot contribute).
 //!
 //! # Example
