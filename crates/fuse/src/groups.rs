@@ -204,9 +204,7 @@ impl Groups {
     /// a file without shares or [`Grouping::Masks`] leave the paper's weights. The
     /// factors are quantised to 2^-16.
     pub fn with_pixel_shares(mut self, proposals: &Proposals, power: f64) -> Result<Groups> {
-        if !(power.is_finite() && power >= 0.0) {
-            return Err(crate::FuseError::PixelSharePower(power));
-        }
+        check_pixel_share_power(power)?;
         let Some(shares) = &proposals.mask_share else {
             return Ok(self);
         };
@@ -358,6 +356,15 @@ impl Groups {
     /// The factor of mask m's mass in its proposal's descriptor: s_m, or 1.
     pub fn share(&self, m: usize) -> f64 {
         self.mask_share.get(m).map_or(1.0, |s| f64::from(*s))
+    }
+}
+
+/// The exponent of the members' pixel weights must be a finite number >= 0.
+pub(crate) fn check_pixel_share_power(power: f64) -> Result<()> {
+    if power.is_finite() && power >= 0.0 {
+        Ok(())
+    } else {
+        Err(crate::FuseError::PixelSharePower(power))
     }
 }
 

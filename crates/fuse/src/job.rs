@@ -398,11 +398,7 @@ fn check_params(params: &Params) -> Result<()> {
     if !(0.0..=1.0).contains(&params.min_share) {
         return Err(crate::FuseError::MinShare(params.min_share));
     }
-    let e = params.pixel_share_power;
-    if !(e.is_finite() && e >= 0.0) {
-        return Err(crate::FuseError::PixelSharePower(e));
-    }
-    Ok(())
+    crate::groups::check_pixel_share_power(params.pixel_share_power)
 }
 
 /// Writes the job's semantic index (if it names one) from the same sums as its features.

@@ -109,6 +109,14 @@ impl Fixture {
         json["masks"].as_array().unwrap().clone()
     }
 
+    /// The ground-truth class of every mask (`class_id` of `gt/mask_objects.json`).
+    fn mask_classes(&self) -> Vec<Option<i64>> {
+        self.mask_objects()
+            .iter()
+            .map(|e| e["class_id"].as_i64())
+            .collect()
+    }
+
     fn scene(&self) -> Scene<'_> {
         Scene::new(&self.gaussians, &self.cameras, &self.masks)
     }
@@ -902,11 +910,7 @@ fn an_impure_proposal_does_not_poison_its_minority_under_blend() {
         c.faults.p_wrong_class = 0.0;
     });
     let d = fx.masks.dim;
-    let class_of_mask: Vec<Option<i64>> = fx
-        .mask_objects()
-        .iter()
-        .map(|e| e["class_id"].as_i64())
-        .collect();
+    let class_of_mask = fx.mask_classes();
     let p = fx.proposals(1);
     let groups = share_groups(&fx.masks, &p, Orphans::Ignore);
     let mass: Vec<f64> = accumulate(&fx.scene(), &groups, 10, 0..4, &mut |_| {})
@@ -1885,7 +1889,7 @@ fn merged_members_paint_fewer_neighbours_when_pixels_weigh_their_share() {
     });
     let d = fx.masks.dim;
     let entries = fx.mask_objects();
-    let class_of_mask: Vec<Option<i64>> = entries.iter().map(|e| e["class_id"].as_i64()).collect();
+    let class_of_mask = fx.mask_classes();
     let purity: Vec<f32> = entries
         .iter()
         .map(|e| (e["purity"].as_f64().unwrap_or(1.0) as f32).clamp(0.01, 1.0))
