@@ -16,6 +16,10 @@ use profuse_fuse::{
 };
 use splat_raster::{Rasterizer, RenderOptions, ViewCamera, ViewRender, NO_GAUSSIAN};
 
+/// What each mask's pixels register (`registered_mask_descriptors`), in one test binary
+/// with the rest.
+mod registered;
+
 // ---------------------------------------------------------------------------------------
 // Fixtures.
 

@@ -1,8 +1,6 @@
 //! `registered_mask_descriptors`: what each mask's pixels register, checked against the
 //! groups and the group descriptors, and against a Gaussian fed by one group only.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)]
-
 use profuse_formats::{Cameras, FileKind, Gaussians, Masks, Proposals};
 use profuse_fuse::{
     accumulate, group_descriptors, registered_mask_descriptors, Groups, MemberWeight, Orphans,
