@@ -145,7 +145,9 @@ pub const DEFAULT_K: usize = 10;
 /// Default exponent e of the members' pixel weights s_m^e in W ([`Groups::with_pixel_shares`];
 /// 0 is the paper). Measured over unseen seeds in crates/fuse/README.md ("Member pixels
 /// weighed by their share"): on `default` seeds 16-31 the ScanNet mIoU19 gap to the
-/// per-mask baseline went -1.05 (e = 0), -0.66 (1), -0.39 (2), +0.02 (4).
+/// per-mask baseline went -1.05 (e = 0), -0.66 (1), -0.39 (2), +0.02 (4) in the
+/// exploratory build (f64 factors; the committed integer factors give +0.03), and on the
+/// seeds 32-47 measured afterwards -0.23 (0) and +0.30 (4).
 pub const DEFAULT_PIXEL_SHARE_POWER: f64 = 4.0;
 
 /// How the inputs are named in errors (file paths in the tools).
