@@ -20,6 +20,14 @@ use splat_raster::{Rasterizer, RenderOptions, ViewCamera, ViewRender, NO_GAUSSIA
 /// with the rest.
 mod registered;
 
+/// `err` says that `merge` refused partial files differing in `field`.
+fn assert_partial_mismatch(err: &FuseError, field: &str) {
+    assert!(
+        matches!(err, FuseError::PartialMismatch { field: f, .. } if *f == field),
+        "expected a mismatch in {field}, got: {err}"
+    );
+}
+
 // ---------------------------------------------------------------------------------------
 // Fixtures.
 
@@ -1477,10 +1485,7 @@ fn merge_rejects_overlaps_mismatches_and_corrupt_files() {
 
     let c = accumulate(&scene, &groups, 8, 2..4, &mut |_| {}).unwrap();
     let err = merge(&[a.clone(), c], &names).unwrap_err();
-    assert!(
-        matches!(err, FuseError::PartialMismatch { field: "k", .. }),
-        "{err}"
-    );
+    assert_partial_mismatch(&err, "k");
     let other = accumulate(
         &scene,
         &fx.groups(1, Orphans::Singleton),
@@ -1490,16 +1495,7 @@ fn merge_rejects_overlaps_mismatches_and_corrupt_files() {
     )
     .unwrap();
     let err = merge(&[a.clone(), other], &names).unwrap_err();
-    assert!(
-        matches!(
-            err,
-            FuseError::PartialMismatch {
-                field: "orphans",
-                ..
-            }
-        ),
-        "{err}"
-    );
+    assert_partial_mismatch(&err, "orphans");
 
     // Member shares travel in the partial files: shards merge to the single run's
     // descriptors, a file keeps them, and shards with other shares (or none) are refused.
@@ -1519,16 +1515,7 @@ fn merge_rejects_overlaps_mismatches_and_corrupt_files() {
     let back = PartialSums::read(dir.path().join("first.st")).unwrap();
     assert_eq!(back.groups(), first.groups());
     let err = merge(&[a.clone(), second], &names).unwrap_err();
-    assert!(
-        matches!(
-            err,
-            FuseError::PartialMismatch {
-                field: "mask_share",
-                ..
-            }
-        ),
-        "{err}"
-    );
+    assert_partial_mismatch(&err, "mask_share");
 
     let half = merge(std::slice::from_ref(&a), &[]).unwrap();
     assert!(!half.is_complete());
@@ -1580,28 +1567,10 @@ fn blend_partial_files_are_checked() {
     )
     .unwrap();
     let err = merge(&[a.clone(), paper], &names).unwrap_err();
-    assert!(
-        matches!(
-            err,
-            FuseError::PartialMismatch {
-                field: "grouping",
-                ..
-            }
-        ),
-        "{err}"
-    );
+    assert_partial_mismatch(&err, "grouping");
     let masks = accumulate(&scene, &Groups::per_mask(&fx.masks), 10, 2..4, &mut |_| {}).unwrap();
     let err = merge(&[a.clone(), masks], &names).unwrap_err();
-    assert!(
-        matches!(
-            err,
-            FuseError::PartialMismatch {
-                field: "grouping",
-                ..
-            }
-        ),
-        "{err}"
-    );
+    assert_partial_mismatch(&err, "grouping");
     // The same groups (masks), but a mask in another proposal.
     let mut other = blend.clone();
     let moved = other
@@ -1616,16 +1585,7 @@ fn blend_partial_files_are_checked() {
     };
     let b = accumulate(&scene, &other, 10, 2..4, &mut |_| {}).unwrap();
     let err = merge(&[a.clone(), b], &names).unwrap_err();
-    assert!(
-        matches!(
-            err,
-            FuseError::PartialMismatch {
-                field: "mask_proposal",
-                ..
-            }
-        ),
-        "{err}"
-    );
+    assert_partial_mismatch(&err, "mask_proposal");
     let b = accumulate(
         &scene,
         &fx.blend_groups(Orphans::Singleton),
