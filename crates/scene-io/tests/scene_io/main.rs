@@ -18,6 +18,11 @@ use scene_io::scannet::{
 use scene_io::transforms::read_transforms;
 use scene_io::SceneError;
 
+/// Regression tests of issue 20 (hardening) for the importers.
+mod hardening;
+/// The LLFF `poses_bounds.npy` importer against closed forms.
+mod llff;
+
 // ---------------------------------------------------------------------------------------
 // helpers
 

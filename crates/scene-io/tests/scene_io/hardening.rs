@@ -3,8 +3,6 @@
 //! paths, empty results, incomplete COLMAP models). Each test names its item; each
 //! failed on the code before the fix. Inputs are crafted here, small (sparse files stand
 //! in for big ones).
-#![allow(clippy::unwrap_used, clippy::expect_used)]
-
 use std::io::Write;
 use std::path::Path;
 use std::sync::mpsc;

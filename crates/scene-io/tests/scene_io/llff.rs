@@ -2,7 +2,7 @@
 //! against a closed form (the same cameras written as a transforms.json), against
 //! projections worked out from LLFF's [down, right, back] axes, at a downscale factor,
 //! and on malformed scenes.
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::needless_range_loop)]
+#![allow(clippy::needless_range_loop)]
 
 use std::path::Path;
 
