@@ -31,8 +31,7 @@ use serde::Serialize;
 use crate::error::{invalid, missing, Result};
 use crate::fsutil::show;
 use crate::npy::read_npz;
-use crate::undistort::{undistort_pixel, within};
-use profuse_formats::camera::{normalised_to_pixel, pixel_to_normalised};
+use crate::undistort::{to_target_pixel, PointDrop};
 
 /// How to read the keypoint files.
 #[derive(Debug, Clone)]
@@ -127,21 +126,22 @@ pub fn import_keypoint_pairs(
             ));
         }
         let (ki, kj) = read_pair(file, opts)?;
+        let shift = if opts.integer_centres { 0.5 } else { 0.0 };
+        let target = opts.target.as_ref();
+        let pixel = |v: usize, p: [f64; 2]| {
+            to_target_pixel(cameras, target, v, p.map(|x| x + shift), opts.undistort)
+        };
         for (a, b) in ki.into_iter().zip(kj) {
-            let a = to_pinhole(cameras, vi, a, opts);
-            let b = to_pinhole(cameras, vj, b, opts);
-            match (a, b) {
-                (Some(a), Some(b)) => match (
-                    in_target(cameras, opts, vi, a),
-                    in_target(cameras, opts, vj, b),
-                ) {
-                    (Some(a), Some(b)) => {
-                        points_i.push(a);
-                        points_j.push(b);
-                    }
-                    _ => report.dropped_outside += 1,
-                },
-                _ => report.dropped_undistort += 1,
+            // A point that cannot be undistorted counts before one outside its image.
+            match (pixel(vi, a), pixel(vj, b)) {
+                (Ok(a), Ok(b)) => {
+                    points_i.push(a);
+                    points_j.push(b);
+                }
+                (Err(PointDrop::Undistort), _) | (_, Err(PointDrop::Undistort)) => {
+                    report.dropped_undistort += 1
+                }
+                _ => report.dropped_outside += 1,
             }
         }
         pairs.push([vi as u32, vj as u32]);
@@ -257,34 +257,4 @@ fn read_pair(file: &Path, opts: &KeypointOptions) -> Result<KeypointRows> {
         ));
     }
     Ok((ki, kj))
-}
-
-/// A point of view `v`'s pinhole camera (the input's intrinsics) in the pixels of the
-/// target camera, `None` outside its image; unchanged without target cameras.
-fn in_target(cameras: &Cameras, opts: &KeypointOptions, v: usize, p: [f64; 2]) -> Option<[f32; 2]> {
-    let Some(t) = &opts.target else {
-        return Some(p.map(|x| x as f32));
-    };
-    let n = pixel_to_normalised(&cameras.intrinsics[v], p);
-    let q = normalised_to_pixel(&t.intrinsics[v], n);
-    let [w, h] = t.image_size[v].map(f64::from);
-    within(q[0], q[1], w, h).then(|| q.map(|x| x as f32))
-}
-
-/// A keypoint in SPEC.md pixel coordinates of the pinhole camera of view `v`.
-fn to_pinhole(
-    cameras: &Cameras,
-    v: usize,
-    p: [f64; 2],
-    opts: &KeypointOptions,
-) -> Option<[f64; 2]> {
-    let shift = if opts.integer_centres { 0.5 } else { 0.0 };
-    let (u, w) = (p[0] + shift, p[1] + shift);
-    let [u, w] = match (&cameras.distortion, opts.undistort) {
-        (Some(d), true) if d[v] != [0.0; 4] => {
-            undistort_pixel(&cameras.intrinsics[v], &d[v], [u, w])?
-        }
-        _ => [u, w],
-    };
-    Some([u, w])
 }

@@ -35,6 +35,9 @@
 //!   - [`keypoints`]: keypoint-pair `.npz` files (XFeat, LightGlue, LoFTR) → `+0.5`
 //!     (OpenCV puts pixel centres at integers), undistorted with [`undistort`] when the
 //!     cameras carry OpenCV k1 k2 p1 p2, so that every later stage is pinhole.
+//!   - [`colmap::track_matches`]: a COLMAP model's own tracks → sparse matches (no
+//!     learned matcher), one match per 3D point on its widest-angle view pair, undistorted
+//!     the same way as keypoint pairs.
 //! * **Bounded reads.** Files are opened only when they are regular files (a FIFO would
 //!   block, `/dev/zero` never ends); text inputs are capped ([`MAX_SMALL_TEXT_BYTES`],
 //!   [`MAX_JSON_BYTES`], [`ColmapOptions::max_text_bytes`]); `.npy` headers are capped at

@@ -30,8 +30,8 @@
 
 use std::path::{Path, PathBuf};
 
-use profuse_formats::camera::pixel_centre;
 pub use profuse_formats::camera::{distort_pixel, undistort_pixel, Lens};
+use profuse_formats::camera::{normalised_to_pixel, pixel_centre, pixel_to_normalised};
 use profuse_formats::Cameras;
 use serde::Serialize;
 
@@ -68,6 +68,52 @@ pub fn undistort_rgb(
 /// where the undistortion samples a photo and where a keypoint counts as inside an image.
 pub(crate) fn within(u: f64, v: f64, width: f64, height: f64) -> bool {
     u >= 0.0 && v >= 0.0 && u <= width && v <= height
+}
+
+/// Why a point could not be expressed in its target camera ([`to_target_pixel`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum PointDrop {
+    /// The lens model's inverse rejects it (beyond the model's fold).
+    Undistort,
+    /// It falls outside the target camera's image.
+    Outside,
+}
+
+/// A point of view `v` in SPEC.md pixels of `cameras` (corner origin; distorted by the
+/// view's lens when `undistort` and the cameras carry one) in the pixels of the view's
+/// pinhole camera: `target`'s (same views, same order) when given, where it must fall
+/// inside the image, else the pinhole camera with the input's intrinsics. Used by the
+/// keypoint-pair and COLMAP-track imports, so that both express points the same way.
+pub(crate) fn to_target_pixel(
+    cameras: &Cameras,
+    target: Option<&Cameras>,
+    v: usize,
+    p: [f64; 2],
+    undistort: bool,
+) -> Result<[f32; 2], PointDrop> {
+    let Some(intrinsics) = cameras.intrinsics.get(v) else {
+        return Err(PointDrop::Outside);
+    };
+    let lens = cameras.distortion.as_ref().and_then(|d| d.get(v));
+    let p = match lens {
+        Some(lens) if undistort && *lens != [0.0; 4] => {
+            undistort_pixel(intrinsics, lens, p).ok_or(PointDrop::Undistort)?
+        }
+        _ => p,
+    };
+    let Some(t) = target else {
+        return Ok(p.map(|x| x as f32));
+    };
+    let (Some(ti), Some(size)) = (t.intrinsics.get(v), t.image_size.get(v)) else {
+        return Err(PointDrop::Outside);
+    };
+    let q = normalised_to_pixel(ti, pixel_to_normalised(intrinsics, p));
+    let [w, h] = size.map(f64::from);
+    if within(q[0], q[1], w, h) {
+        Ok(q.map(|x| x as f32))
+    } else {
+        Err(PointDrop::Outside)
+    }
 }
 
 /// Bilinear sample of an RGB8 image at pixel position `(u, v)` (centres at +0.5); `None`

@@ -16,11 +16,13 @@
 //!   Text files are read up to [`ColmapOptions::max_text_bytes`].
 //!
 //! Points seed Gaussians the way INRIA 3DGS initialises from SfM points
-//! ([`seed_gaussians`]).
+//! ([`seed_gaussians`]); their tracks become sparse matches for gs-init
+//! ([`track_matches`]).
 
 mod binary;
 mod model;
 mod text;
+mod tracks;
 
 use std::collections::BTreeMap;
 use std::num::NonZeroUsize;
@@ -34,6 +36,9 @@ use serde::Serialize;
 
 pub use model::{
     CameraModel, ColmapCamera, ColmapFormat, ColmapImage, ColmapModel, ColmapPoint, ModelFiles,
+};
+pub use tracks::{
+    track_matches, TrackOptions, TrackReport, DEFAULT_MIN_SHARED, DEFAULT_NEIGHBOURS,
 };
 
 use crate::error::{invalid, missing, unsupported, Result, SceneError};
@@ -216,10 +221,11 @@ pub fn import_colmap(dir: impl AsRef<Path>, options: &ColmapOptions) -> Result<C
     })
 }
 
-/// The registered images as cameras, sorted by image name.
-pub fn colmap_cameras(model: &ColmapModel, options: &ColmapOptions) -> Result<Cameras> {
+/// The registered images in view order: sorted by name, the order of [`colmap_cameras`]
+/// (view `v` is the `v`-th image of this list). An error when the model has no image or
+/// two images share a name.
+pub fn view_order(model: &ColmapModel) -> Result<Vec<&ColmapImage>> {
     let images_label = show(&model.files.images);
-    let cameras_label = show(&model.files.cameras);
     if model.images.is_empty() {
         return Err(invalid(
             &images_label,
@@ -240,6 +246,14 @@ pub fn colmap_cameras(model: &ColmapModel, options: &ColmapOptions) -> Result<Ca
             format!("image name {name:?} appears twice"),
         ));
     }
+    Ok(order)
+}
+
+/// The registered images as cameras, sorted by image name ([`view_order`]).
+pub fn colmap_cameras(model: &ColmapModel, options: &ColmapOptions) -> Result<Cameras> {
+    let images_label = show(&model.files.images);
+    let cameras_label = show(&model.files.cameras);
+    let order = view_order(model)?;
 
     let mut names = Vec::with_capacity(order.len());
     let mut sizes = Vec::with_capacity(order.len());

@@ -22,6 +22,8 @@ use scene_io::SceneError;
 mod hardening;
 /// The LLFF `poses_bounds.npy` importer against closed forms.
 mod llff;
+/// COLMAP tracks as sparse matches, against a brute-force reference.
+mod tracks;
 
 // ---------------------------------------------------------------------------------------
 // helpers

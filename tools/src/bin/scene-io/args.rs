@@ -173,6 +173,12 @@ pub enum Command {
         #[arg(long)]
         pinhole_cameras: Option<PathBuf>,
     },
+    /// COLMAP's own tracks → sparse_matches file, for gs-init without a learned matcher.
+    /// Each view is paired with the views it shares the most 3D points with; each point
+    /// gives one match, on its pair with the widest triangulation angle (so gs-init makes
+    /// one Gaussian per point), or with --all-pairs one per pair its track spans. Points
+    /// are undistorted with the cameras' lens model.
+    Tracks(TracksArgs),
     /// Undistort a scene's images with its cameras' OpenCV lens model: writes
     /// OUT_DIR/images/<stem>.png and OUT_DIR/cameras.safetensors (pinhole, same intrinsics).
     Undistort {
@@ -196,4 +202,40 @@ pub enum Command {
         #[arg(long)]
         crop: bool,
     },
+}
+
+/// Arguments of `scene-io tracks`.
+#[derive(Debug, clap::Args)]
+pub struct TracksArgs {
+    /// Directory holding cameras/images/points3D as .bin or .txt (e.g. sparse/0).
+    pub model_dir: PathBuf,
+    /// The cameras file `scene-io colmap` wrote for this model (any --images-prefix); its
+    /// views must be the model's images, in the same order, with the same intrinsics.
+    #[arg(long)]
+    pub cameras: PathBuf,
+    /// Express the points in these pinhole cameras' pixels (same views, same order), e.g.
+    /// the cameras `undistort --crop` wrote; points outside their image are dropped
+    /// (counted as dropped_outside).
+    #[arg(long)]
+    pub pinhole_cameras: Option<PathBuf>,
+    /// Each view is paired with the K views it shares the most points with; a pair is kept
+    /// when either side chose it.
+    #[arg(long, value_name = "K", default_value_t = scene_io::colmap::DEFAULT_NEIGHBOURS)]
+    pub neighbours: usize,
+    /// A pair needs at least this many shared points.
+    #[arg(long, value_name = "N", default_value_t = scene_io::colmap::DEFAULT_MIN_SHARED)]
+    pub min_shared: usize,
+    /// Views (indices in the cameras file, i.e. sorted by image name) that take no part,
+    /// e.g. held-out photos: --exclude 10,25,40.
+    #[arg(long, value_name = "VIEWS", value_delimiter = ',')]
+    pub exclude: Vec<usize>,
+    /// Every kept pair a point's track spans gives a match, instead of one match per point.
+    #[arg(long)]
+    pub all_pairs: bool,
+    /// Largest text model file read, in MiB (a bigger one is an error).
+    #[arg(long, value_name = "MIB", default_value_t = scene_io::colmap::MAX_TEXT_BYTES >> 20)]
+    pub max_text_mb: u64,
+    /// The sparse_matches file to write.
+    #[arg(long)]
+    pub out: PathBuf,
 }

@@ -1,14 +1,18 @@
-//! Subcommands whose bodies do not fit `main.rs`: ScanNet folders and LLFF scenes.
+//! Subcommands whose bodies do not fit `main.rs`: ScanNet folders, LLFF scenes and COLMAP
+//! tracks.
 
 use std::path::{Path, PathBuf};
 
-use profuse_tools::BoxError;
+use profuse_formats::{Cameras, FileKind};
+use profuse_tools::{warn, BoxError};
+use scene_io::colmap::{read_colmap_model_capped, track_matches, TrackOptions};
 use scene_io::llff::{import_llff, LlffOptions};
 use scene_io::scannet::{
     import_scannet_folder, read_axis_alignment, AxisAlignment, ScannetOptions,
 };
 use serde_json::Value;
 
+use crate::args::TracksArgs;
 use crate::{save, stamp, warn_all};
 
 /// `scene-io scannet`: `align` is (`--axis-align`, `--no-axis-align`).
@@ -41,4 +45,40 @@ pub fn llff(scene: &Path, out: &Path, factor: u32, quiet: bool) -> Result<Value,
     let (mut cams, report) = import_llff(scene, &LlffOptions { factor })?;
     stamp(&mut cams.extra, "llff");
     save(&cams, "llff", scene, out, &report, quiet)
+}
+
+/// `scene-io tracks`.
+pub fn tracks(args: TracksArgs, quiet: bool) -> Result<Value, BoxError> {
+    let model =
+        read_colmap_model_capped(&args.model_dir, args.max_text_mb.saturating_mul(1 << 20))?;
+    let cams = Cameras::read(&args.cameras)?;
+    let target = args
+        .pinhole_cameras
+        .as_deref()
+        .map(Cameras::read)
+        .transpose()?;
+    let options = TrackOptions {
+        neighbours: args.neighbours,
+        min_shared: args.min_shared,
+        exclude_views: args.exclude,
+        target,
+        one_per_point: !args.all_pairs,
+    };
+    let (mut matches, report) = track_matches(&model, &cams, &options)?;
+    if !report.views_without_pair.is_empty() {
+        let msg = format!(
+            "views {:?} belong to no pair (too few shared points): gs-init seeds no Gaussian from them",
+            report.views_without_pair
+        );
+        warn(quiet, &msg);
+    }
+    stamp(&mut matches.extra, "tracks");
+    save(
+        &matches,
+        "tracks",
+        &args.model_dir,
+        &args.out,
+        &report,
+        quiet,
+    )
 }

@@ -82,6 +82,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             importers::scannet(&scene_dir, &out, stride, align, size, quiet)
         }
         Command::Llff { scene, out, factor } => importers::llff(&scene, &out, factor, quiet),
+        Command::Tracks(args) => importers::tracks(args, quiet),
         Command::ScannetMesh {
             labels_ply,
             out,
