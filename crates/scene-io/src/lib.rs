@@ -90,6 +90,7 @@ pub mod keypoints;
 pub mod langsplat;
 pub mod llff;
 pub mod npy;
+pub mod photo;
 pub mod ply;
 pub mod scannet;
 pub mod transforms;

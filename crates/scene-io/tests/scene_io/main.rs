@@ -23,6 +23,7 @@ mod hardening;
 /// The LLFF `poses_bounds.npy` importer against closed forms.
 mod llff;
 /// COLMAP tracks as sparse matches, against a brute-force reference.
+mod photo;
 mod tracks;
 
 // ---------------------------------------------------------------------------------------

@@ -179,6 +179,28 @@ pub enum Command {
     /// one Gaussian per point), or with --all-pairs one per pair its track spans. Points
     /// are undistorted with the cameras' lens model.
     Tracks(TracksArgs),
+    /// Lay a mask PNG of a prepared scene's view (its undistorted, cut pixels; e.g. a
+    /// query selection) onto the original photo: writes a PNG of the photo's size
+    /// (nearest sample; 0 outside the cut).
+    ToPhoto {
+        #[command(flatten)]
+        at: crate::photo::SceneCameras,
+        /// The mask PNG, the size of the scene's image of that view.
+        mask: PathBuf,
+        /// The PNG to write.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Map a pixel position of the original photo (e.g. a click the user chose on their
+    /// photo) into a prepared scene's view; prints {"scene": [x, y]}.
+    PhotoPoint {
+        #[command(flatten)]
+        at: crate::photo::SceneCameras,
+        /// Photo x (pixel centres at +0.5).
+        x: f64,
+        /// Photo y.
+        y: f64,
+    },
     /// Undistort a scene's images with its cameras' OpenCV lens model: writes
     /// OUT_DIR/images/<stem>.png and OUT_DIR/cameras.safetensors (pinhole, same intrinsics).
     Undistort {

@@ -23,6 +23,7 @@ use serde_json::{json, Map, Value};
 
 mod args;
 mod importers;
+mod photo;
 use args::{Cli, Command};
 
 fn main() -> ExitCode {
@@ -83,6 +84,8 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
         }
         Command::Llff { scene, out, factor } => importers::llff(&scene, &out, factor, quiet),
         Command::Tracks(args) => importers::tracks(args, quiet),
+        Command::ToPhoto { at, mask, out } => photo::to_photo(&at, &mask, &out),
+        Command::PhotoPoint { at, x, y } => photo::photo_point(&at, x, y),
         Command::ScannetMesh {
             labels_ply,
             out,
