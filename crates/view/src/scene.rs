@@ -7,12 +7,54 @@ use profuse_formats::{Cameras, FileKind, Gaussians, Masks, Proposals};
 use profuse_fuse::{Names, Scene};
 use profuse_query::{
     resolve_click, score_prompts, select, Click, ClickBy, ClickTarget, DescriptorPath,
-    PromptSelection, Rule, ScoreInputs, ScoreKind, DEFAULT_RELEVANCY_THRESHOLD, DEFAULT_TOP_K,
+    DescriptorSet, Descriptors, PromptSelection, Rule, ScoreInputs, ScoreKind,
+    DEFAULT_RELEVANCY_THRESHOLD, DEFAULT_TOP_K,
 };
 
 use crate::error::{Result, ViewError};
 use crate::presets::{presets, Preset};
 use crate::splat::splat_bytes;
+
+/// Cosine threshold of a click in click-only mode (the slider's initial value): the one
+/// `examples/fox-semantic.sh` gives `query run --click --score cosine --threshold`, chosen
+/// for SAM-embedding descriptors, whose cosines are all high (crates/prep/README.md, the
+/// fox example). The query crate has no cosine default (`query run --score cosine` needs
+/// an explicit threshold).
+pub const DEFAULT_CLICK_COSINE_THRESHOLD: f32 = 0.9;
+
+/// How selections are scored, with the files that scoring reads.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ScoringPaths {
+    /// Gaussians only (`--gaussians-only`): no selection.
+    None,
+    /// Text prompts and clicks, scored by LERF relevancy against the prompts file's
+    /// canonical negatives.
+    Relevancy {
+        /// `SCENE/prompts.safetensors`.
+        prompts: PathBuf,
+        /// `OUT/pq.safetensors`.
+        pq: PathBuf,
+    },
+    /// Click only (no prompts file, e.g. a `profuse prepare` scene without a CLIP text
+    /// encoder, whose masks carry SAM-embedding descriptors): no text prompts; a click is
+    /// scored by the cosine between the clicked mask's proposal descriptor and every
+    /// Gaussian's PQ-decoded descriptor.
+    ClickCosine {
+        /// `OUT/pq.safetensors`.
+        pq: PathBuf,
+    },
+}
+
+impl ScoringPaths {
+    /// `gaussians_only`, `prompts` or `click_only` (the `mode` of `/api/scene`).
+    pub fn mode(&self) -> &'static str {
+        match self {
+            ScoringPaths::None => "gaussians_only",
+            ScoringPaths::Relevancy { .. } => "prompts",
+            ScoringPaths::ClickCosine { .. } => "click_only",
+        }
+    }
+}
 
 /// Where the files of a pipeline output are (SPEC.md §6).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -21,9 +63,8 @@ pub struct OutputPaths {
     pub cameras: PathBuf,
     /// `OUT/gaussians.safetensors`.
     pub gaussians: PathBuf,
-    /// `SCENE/prompts.safetensors` and `OUT/pq.safetensors`; absent when viewing
-    /// Gaussians only.
-    pub scoring: Option<(PathBuf, PathBuf)>,
+    /// The scoring mode and its files.
+    pub scoring: ScoringPaths,
     /// `SCENE/masks.safetensors` and `OUT/proposals.safetensors` (query by click).
     pub click: Option<(PathBuf, PathBuf)>,
 }
@@ -31,34 +72,45 @@ pub struct OutputPaths {
 impl OutputPaths {
     /// The files of `dir`, which is a scene directory with an `out/` of pipeline outputs
     /// or that `out/` directory itself. Names the first required file that is missing.
+    ///
+    /// With `SCENE/prompts.safetensors` the scoring is [`ScoringPaths::Relevancy`]. Without
+    /// it, an output with `OUT/pq.safetensors`, `SCENE/masks.safetensors` and
+    /// `OUT/proposals.safetensors` is viewed click only ([`ScoringPaths::ClickCosine`]);
+    /// any other output lacks the prompts file (view it with
+    /// [`OutputPaths::find_gaussians_only`]).
     pub fn find(dir: &Path) -> Result<OutputPaths> {
         let (scene, out) = scene_and_out(dir)?;
-        let paths = OutputPaths {
-            cameras: scene.join("cameras.safetensors"),
-            gaussians: out.join("gaussians.safetensors"),
-            scoring: Some((
-                scene.join("prompts.safetensors"),
-                out.join("pq.safetensors"),
-            )),
-            click: Some((
-                scene.join("masks.safetensors"),
-                out.join("proposals.safetensors"),
-            ))
-            .filter(|(m, p)| m.is_file() && p.is_file()),
+        let cameras = scene.join("cameras.safetensors");
+        let prompts = scene.join("prompts.safetensors");
+        let pq = out.join("pq.safetensors");
+        let click = Some((
+            scene.join("masks.safetensors"),
+            out.join("proposals.safetensors"),
+        ))
+        .filter(|(m, p)| m.is_file() && p.is_file());
+        let scoring = if !prompts.is_file() && pq.is_file() && click.is_some() {
+            ScoringPaths::ClickCosine { pq }
+        } else {
+            ScoringPaths::Relevancy { prompts, pq }
         };
-        let mut required = vec![&paths.cameras];
-        if let Some((prompts, pq)) = &paths.scoring {
-            required.extend([prompts, pq]);
+        let mut required = vec![&cameras];
+        match &scoring {
+            ScoringPaths::Relevancy { prompts, pq } => required.extend([prompts, pq]),
+            ScoringPaths::ClickCosine { pq } => required.push(pq),
+            ScoringPaths::None => {}
         }
-        for required in required {
-            if !required.is_file() {
-                return Err(ViewError::NotPipelineOutput {
-                    dir: dir.into(),
-                    missing: required.clone(),
-                });
-            }
+        if let Some(missing) = required.into_iter().find(|p| !p.is_file()) {
+            return Err(ViewError::NotPipelineOutput {
+                dir: dir.into(),
+                missing: missing.clone(),
+            });
         }
-        Ok(paths)
+        Ok(OutputPaths {
+            cameras,
+            gaussians: out.join("gaussians.safetensors"),
+            scoring,
+            click,
+        })
     }
 
     /// Gaussians and cameras only (no prompts, no selection): `gaussians.safetensors` in
@@ -80,7 +132,7 @@ impl OutputPaths {
         Ok(OutputPaths {
             cameras: cameras.clone(),
             gaussians: out.join("gaussians.safetensors"),
-            scoring: None,
+            scoring: ScoringPaths::None,
             click: None,
         })
     }
@@ -111,9 +163,40 @@ struct ClickInputs {
     proposals: Proposals,
 }
 
+/// The descriptors selections are scored on, and how.
+// One value per opened scene: the variants' sizes (a few hundred bytes of headers) do not
+// matter.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug)]
+enum Scoring {
+    /// Prompts and PQ codes: LERF relevancy.
+    Relevancy(PromptScores),
+    /// PQ codes only: clicks scored by cosine.
+    ClickCosine {
+        /// The PQ codes.
+        pq: DescriptorSet,
+    },
+}
+
+impl Scoring {
+    fn descriptors(&self) -> Descriptors<'_> {
+        match self {
+            Scoring::Relevancy(s) => s.inputs.descriptors(),
+            Scoring::ClickCosine { pq } => pq.as_descriptors(),
+        }
+    }
+
+    fn kind(&self) -> ScoreKind {
+        match self {
+            Scoring::Relevancy(_) => ScoreKind::Relevancy,
+            Scoring::ClickCosine { .. } => ScoreKind::Cosine,
+        }
+    }
+}
+
 /// The prompts and their scores.
 #[derive(Debug)]
-struct Scoring {
+struct PromptScores {
     inputs: ScoreInputs,
     /// The prompts offered (every prompt but the canonical negatives), as prompt-file rows.
     offered: Vec<usize>,
@@ -137,15 +220,21 @@ pub struct ViewScene {
 pub struct SceneInfo {
     /// Number of Gaussians (rows of `/scene.splat`).
     pub gaussians: usize,
-    /// The prompts offered, in prompts-file order (none when viewing Gaussians only).
+    /// `prompts` (text prompts and clicks), `click_only` (no prompts file: clicks only)
+    /// or `gaussians_only` (no selection).
+    pub mode: &'static str,
+    /// The prompts offered, in prompts-file order (none when viewing Gaussians only or
+    /// click only).
     pub prompts: Vec<String>,
-    /// The score: always LERF relevancy.
+    /// The score the threshold applies to: `relevancy` (LERF, with prompts) or `cosine`
+    /// (click only).
     pub score: &'static str,
-    /// The slider's initial threshold.
+    /// The slider's initial threshold: [`DEFAULT_RELEVANCY_THRESHOLD`] for relevancy,
+    /// [`DEFAULT_CLICK_COSINE_THRESHOLD`] for cosine.
     pub default_threshold: f32,
     /// One camera preset per view.
     pub views: Vec<Preset>,
-    /// Whether clicks can be resolved (masks and proposals present).
+    /// Whether clicks can be resolved (masks, proposals and PQ codes present).
     pub click: bool,
 }
 
@@ -161,16 +250,26 @@ impl ViewScene {
         let gaussians = Gaussians::read(&paths.gaussians)?;
         let cameras = Cameras::read(&paths.cameras)?;
         let gaussians_name = paths.gaussians.display().to_string();
-        let scoring = match &paths.scoring {
-            Some((prompts, pq)) => Some(score(prompts, pq, gaussians.len(), &gaussians_name)?),
-            None => None,
-        };
         let click = match &paths.click {
             Some((masks, proposals)) => Some(ClickInputs {
                 masks: Masks::read(masks)?,
                 proposals: Proposals::read(proposals)?,
             }),
             None => None,
+        };
+        let scoring = match &paths.scoring {
+            ScoringPaths::None => None,
+            ScoringPaths::Relevancy { prompts, pq } => Some(Scoring::Relevancy(score(
+                prompts,
+                pq,
+                gaussians.len(),
+                &gaussians_name,
+            )?)),
+            ScoringPaths::ClickCosine { pq } => {
+                let inputs = click.as_ref().zip(paths.click.as_ref());
+                let pq = click_only_descriptors(pq, inputs, &gaussians, &gaussians_name)?;
+                Some(Scoring::ClickCosine { pq })
+            }
         };
         let splat = splat_bytes(&gaussians);
         Ok(ViewScene {
@@ -195,11 +294,19 @@ impl ViewScene {
 
     /// The summary for the page.
     pub fn info(&self) -> SceneInfo {
+        let kind = self
+            .scoring
+            .as_ref()
+            .map_or(ScoreKind::Relevancy, Scoring::kind);
         SceneInfo {
             gaussians: self.gaussians.len(),
+            mode: self.paths.scoring.mode(),
             prompts: self.prompt_names(),
-            score: "relevancy",
-            default_threshold: DEFAULT_RELEVANCY_THRESHOLD,
+            score: kind.name(),
+            default_threshold: match kind {
+                ScoreKind::Relevancy => DEFAULT_RELEVANCY_THRESHOLD,
+                ScoreKind::Cosine => DEFAULT_CLICK_COSINE_THRESHOLD,
+            },
             views: presets(&self.cameras),
             click: self.click.is_some() && self.scoring.is_some(),
         }
@@ -207,10 +314,13 @@ impl ViewScene {
 
     /// Names of the offered prompts.
     pub fn prompt_names(&self) -> Vec<String> {
-        self.scoring.as_ref().map_or_else(Vec::new, |s| {
-            let names = &s.inputs.prompts.names;
-            s.offered.iter().map(|&i| names[i].clone()).collect()
-        })
+        match &self.scoring {
+            Some(Scoring::Relevancy(s)) => {
+                let names = &s.inputs.prompts.names;
+                s.offered.iter().map(|&i| names[i].clone()).collect()
+            }
+            _ => Vec::new(),
+        }
     }
 
     fn scoring(&self) -> Result<&Scoring> {
@@ -221,9 +331,20 @@ impl ViewScene {
     }
 
     /// The Gaussians whose relevancy for the offered prompt `name` is >= `threshold`,
-    /// ascending (the query library's selection rule).
+    /// ascending (the query library's selection rule). In click-only mode a
+    /// [`ViewError::BadRequest`]: the scene has no text prompts.
     pub fn select_prompt(&self, name: &str, threshold: f32) -> Result<Vec<u32>> {
-        let scoring = self.scoring()?;
+        let scoring = match self.scoring()? {
+            Scoring::Relevancy(s) => s,
+            Scoring::ClickCosine { .. } => {
+                return Err(ViewError::BadRequest {
+                    name: "prompt".into(),
+                    reason: "the scene has no text prompts (no SCENE/prompts.safetensors): \
+                             select by clicking"
+                        .into(),
+                })
+            }
+        };
         let names = &scoring.inputs.prompts.names;
         let k = scoring
             .offered
@@ -245,8 +366,9 @@ impl ViewScene {
     }
 
     /// Query by click (the query crate's `resolve_click`: the clicked mask's proposal
-    /// descriptor), scored by relevancy against the prompts file's canonical negatives and
-    /// thresholded like a prompt.
+    /// descriptor), scored by relevancy against the prompts file's canonical negatives
+    /// (with prompts) or by cosine (click only, as `query run --click --score cosine`),
+    /// and thresholded like a prompt.
     pub fn select_click(&self, click: Click, threshold: f32) -> Result<(ClickTarget, Vec<u32>)> {
         let scoring = self.scoring()?;
         let (inputs, (masks_path, proposals_path)) = self
@@ -273,14 +395,16 @@ impl ViewScene {
             ClickBy::Proposal,
             DEFAULT_TOP_K,
         )?;
-        let prompts_name = scoring.inputs.prompts_path.clone();
-        let prompts = target.prompts(Some((&scoring.inputs.prompts, prompts_name.as_str())))?;
-        let scores = score_prompts(
-            scoring.inputs.descriptors(),
-            &prompts,
-            &[0],
-            ScoreKind::Relevancy,
-        )?;
+        // The click's query vector as a one-row prompts table (plus the canonical
+        // negatives for relevancy), scored like a text prompt.
+        let prompts = match scoring {
+            Scoring::Relevancy(s) => {
+                let prompts_name = s.inputs.prompts_path.as_str();
+                target.prompts(Some((&s.inputs.prompts, prompts_name)))?
+            }
+            Scoring::ClickCosine { .. } => target.prompts(None)?,
+        };
+        let scores = score_prompts(scoring.descriptors(), &prompts, &[0], scoring.kind())?;
         let ids = select(&scores[0], Rule::Threshold(threshold))?.ids;
         Ok((target, ids))
     }
@@ -288,14 +412,60 @@ impl ViewScene {
 
 /// Reads the prompts and PQ codes, checks them against the Gaussians and scores every
 /// prompt but the canonical negatives.
-fn score(prompts: &Path, pq: &Path, gaussians: usize, gaussians_name: &str) -> Result<Scoring> {
+fn score(
+    prompts: &Path,
+    pq: &Path,
+    gaussians: usize,
+    gaussians_name: &str,
+) -> Result<PromptScores> {
     let inputs = ScoreInputs::load(&DescriptorPath::Pq(pq.to_path_buf()), prompts)?;
     inputs.check_gaussian_count(gaussians, gaussians_name)?;
     let offered = inputs.resolve_prompts(&PromptSelection::All)?;
     let relevancy = inputs.scores(&offered, ScoreKind::Relevancy)?;
-    Ok(Scoring {
+    Ok(PromptScores {
         inputs,
         offered,
         relevancy,
     })
+}
+
+/// Reads the PQ codes of click-only mode and checks them against the Gaussians and against
+/// the masks (with their path) whose proposals' descriptors a click scores with.
+fn click_only_descriptors(
+    pq: &Path,
+    click: Option<(&ClickInputs, &(PathBuf, PathBuf))>,
+    gaussians: &Gaussians,
+    gaussians_name: &str,
+) -> Result<DescriptorSet> {
+    let Some((inputs, (masks_path, _))) = click else {
+        return Err(ViewError::Mismatch {
+            file: pq.to_path_buf(),
+            reason: "click-only scoring needs SCENE/masks.safetensors and \
+                     OUT/proposals.safetensors"
+                .into(),
+        });
+    };
+    let set = DescriptorSet::read(&DescriptorPath::Pq(pq.to_path_buf()))?;
+    let (n, dim) = (set.as_descriptors().len(), set.as_descriptors().dim());
+    if n != gaussians.len() {
+        return Err(profuse_query::QueryError::CountMismatch {
+            descriptors: pq.display().to_string(),
+            descriptor_count: n,
+            gaussians: gaussians_name.into(),
+            gaussian_count: gaussians.len(),
+        }
+        .into());
+    }
+    if dim != inputs.masks.dim {
+        return Err(ViewError::Mismatch {
+            file: pq.to_path_buf(),
+            reason: format!(
+                "descriptors of dimension {dim}, but the masks' features ({}), whose \
+                 proposals' descriptors a click is scored with, have dimension {}",
+                masks_path.display(),
+                inputs.masks.dim
+            ),
+        });
+    }
+    Ok(set)
 }

@@ -7,8 +7,8 @@
 //! | `/` | the page (`web/index.html`) |
 //! | `/app.js`, `/gsplat.js` | the page's script and the vendored gsplat.js bundle |
 //! | `/scene.splat` | the Gaussians as `.splat` rows ([`crate::splat`]) |
-//! | `/api/scene` | [`SceneInfo`] as JSON |
-//! | `/api/select?prompt=NAME&threshold=T` | selected Gaussian ids, u32 little-endian |
+//! | `/api/scene` | [`SceneInfo`] as JSON (mode, prompts, score, default threshold, presets, click) |
+//! | `/api/select?prompt=NAME&threshold=T` | selected Gaussian ids, u32 little-endian (400 in click-only mode: no text prompts) |
 //! | `/api/click?view=V&x=X&y=Y&threshold=T` | the same for a click; header `X-Click`: JSON of the resolved mask and proposal |
 //! | `/api/export.ply?prompt=…` or `?view=…&x=…&y=…` (and `threshold`) | that selection's Gaussians as an INRIA 3DGS PLY download |
 //!

@@ -1,6 +1,7 @@
 //! Tests of profuse-view: the `.splat` converter against closed forms, the camera presets
 //! against the cameras' own projection through gsplat.js's camera formulas, the typed
-//! errors, the selection answers against the query library, and (with
+//! errors, the selection answers against the query library, click-only scoring (an
+//! output without prompts) against a brute-force cosine, and (with
 //! PROFUSE_REQUIRE_BROWSER=1) the page in headless Chromium on the synth demo output.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -15,8 +16,8 @@ use profuse_formats::camera::{quaternion_to_rotation, SH_C0};
 use profuse_formats::{Cameras, FileKind, Gaussians, Prompts, ViewMaps};
 use profuse_query::{score_prompts, select, Descriptors, Rule, ScoreKind};
 use profuse_view::{
-    answer, listen, percent_decode, presets, rotation_to_quaternion, splat_bytes, ViewError,
-    ViewScene, SPLAT_ROW_BYTES,
+    answer, listen, percent_decode, presets, rotation_to_quaternion, splat_bytes, ScoringPaths,
+    ViewError, ViewScene, DEFAULT_CLICK_COSINE_THRESHOLD, SPLAT_ROW_BYTES,
 };
 
 const LOCALHOST: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
@@ -235,6 +236,236 @@ fn gaussians_only_shows_the_fox_layout_without_prompts() {
 }
 
 const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+
+/// Descriptor dimension of the click-only scene (SAM's image embedding) and its PQ layout.
+const SAM_DIM: usize = 256;
+const PQ_M: usize = 4;
+const PQ_KSUB: usize = 256;
+
+/// The click-only scene's Gaussians: (a₀, a₁, a₆₄), the decoded descriptor a₀e₀ + a₁e₁ +
+/// a₆₄e₆₄ (mask 0's feature is e₀, mask 1's e₁), and whether it has one. Cosines with e₀:
+/// 1, .968, .929, .912, .888, .8, .954 (norm 2), 0, .1, −.5, none, .30, none (decodes to
+/// zero); with e₁: .6 for Gaussian 5, 1 for 7, .949 for 8, .30 for 11, 0 for the others.
+/// None lies within 0.01 of a threshold the test uses.
+const CLICK_ONLY_DESCRIPTORS: [([f32; 3], bool); 13] = [
+    ([1.0, 0.0, 0.0], true),
+    ([0.97, 0.0, 0.25], true),
+    ([0.93, 0.0, 0.37], true),
+    ([0.91, 0.0, 0.41], true),
+    ([0.89, 0.0, 0.46], true),
+    ([0.8, 0.6, 0.0], true),
+    ([1.9, 0.0, 0.6], true),
+    ([0.0, 1.0, 0.0], true),
+    ([0.1, 0.95, 0.3], true),
+    ([-0.5, 0.0, 0.87], true),
+    ([1.0, 0.0, 0.0], false),
+    ([0.3, 0.3, 0.9], true),
+    ([0.0, 0.0, 0.0], true),
+];
+
+/// A `profuse run` output of a scene without `prompts.safetensors` (what `profuse prepare`
+/// makes without a CLIP text encoder): one 64 × 48 view looking down +z, 13 Gaussians in a
+/// row at depth 3 (0-6 on the left half, 7-12 on the right), masks with 256-d
+/// SAM-embedding-like features (mask 0 = left half, feature e₀; mask 1 = right half, e₁),
+/// one proposal per mask, and PQ codes (M = 4, dsub = 64) that decode exactly to
+/// [`CLICK_ONLY_DESCRIPTORS`]. Writes SCENE/cameras, OUT/gaussians and OUT/pq, and with
+/// `click` also SCENE/masks and OUT/proposals.
+fn write_click_only_output(dir: &Path, click: bool) {
+    let n = CLICK_ONLY_DESCRIPTORS.len();
+    let out = dir.join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    let cameras = camera(IDENTITY, [0.0; 3], [100.0, 100.0, 32.0, 24.0], [64, 48]);
+    cameras.write(dir.join("cameras.safetensors")).unwrap();
+    let g = Gaussians {
+        means: (0..n)
+            .map(|i| [((2.0 + 4.8 * i as f32) - 32.0) / 100.0 * 3.0, 0.0, 3.0])
+            .collect::<Vec<_>>()
+            .into(),
+        log_scales: vec![[-3.5; 3]; n].into(),
+        rotations: vec![[1.0, 0.0, 0.0, 0.0]; n].into(),
+        opacity_logits: vec![3.0; n].into(),
+        sh_dc: vec![[0.2, 0.1, -0.1]; n].into(),
+        ..Gaussians::default()
+    };
+    g.write(out.join("gaussians.safetensors")).unwrap();
+    // Subspace 0 (dims 0..64) holds (a₀, a₁) in centroid i, subspace 1 (dims 64..128)
+    // holds a₆₄ in centroid i; subspaces 2 and 3 use their zero centroid 0.
+    let dsub = SAM_DIM / PQ_M;
+    let mut centroids = vec![0.0f32; PQ_M * PQ_KSUB * dsub];
+    let mut codes = vec![0u8; n * PQ_M];
+    let mut norms = vec![0.0f32; n];
+    let mut valid = vec![0u8; n];
+    for (i, ([a0, a1, a64], has)) in CLICK_ONLY_DESCRIPTORS.iter().enumerate() {
+        centroids[i * dsub] = *a0;
+        centroids[i * dsub + 1] = *a1;
+        centroids[(PQ_KSUB + i) * dsub] = *a64;
+        codes[i * PQ_M] = i as u8;
+        codes[i * PQ_M + 1] = i as u8;
+        if *has {
+            valid[i] = 1;
+            norms[i] = (a0 * a0 + a1 * a1 + a64 * a64).sqrt();
+        }
+    }
+    let pq = profuse_formats::Pq {
+        m: PQ_M,
+        dsub,
+        centroids: centroids.into(),
+        codes: codes.into(),
+        norms: norms.into(),
+        valid: valid.into(),
+        extra: Default::default(),
+    };
+    pq.write(out.join("pq.safetensors")).unwrap();
+    if !click {
+        return;
+    }
+    let labels: Vec<u16> = (0..48 * 64).map(|p| u16::from(p % 64 >= 32)).collect();
+    let mut features = vec![0.0f32; 2 * SAM_DIM];
+    features[0] = 1.0;
+    features[SAM_DIM + 1] = 1.0;
+    let masks = profuse_formats::Masks {
+        view_names: cameras.image_names.clone(),
+        width: 64,
+        height: 48,
+        labels: profuse_formats::Labels::U16(labels.into()),
+        mask_offsets: vec![0, 2].into(),
+        features: profuse_formats::Floats::F32(features.into()),
+        dim: SAM_DIM,
+        extra: Default::default(),
+    };
+    masks.write(dir.join("masks.safetensors")).unwrap();
+    let proposals = profuse_formats::Proposals {
+        mask_proposal: vec![0, 1].into(),
+        proposal_size: vec![1, 1].into(),
+        proposal_views: vec![1, 1].into(),
+        mask_share: None,
+        mask_instance: None,
+        extra: Default::default(),
+    };
+    proposals.write(out.join("proposals.safetensors")).unwrap();
+}
+
+/// The ids of a selection answer.
+fn answered_ids(got: &profuse_view::Answer) -> Vec<u32> {
+    assert_eq!(got.status, 200, "{}", String::from_utf8_lossy(&got.body));
+    got.body
+        .chunks(4)
+        .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
+        .collect()
+}
+
+#[test]
+fn an_output_without_prompts_answers_clicks_by_cosine() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    // PQ codes but neither prompts nor masks and proposals: still not a pipeline output
+    // (view it with --gaussians-only), naming the prompts file as before.
+    write_click_only_output(root, false);
+    let err = ViewScene::open(root).unwrap_err();
+    let ViewError::NotPipelineOutput { missing, .. } = &err else {
+        panic!("{err}")
+    };
+    assert_eq!(missing, &root.join("prompts.safetensors"));
+    let paths = profuse_view::OutputPaths::find_gaussians_only(root).unwrap();
+    assert!(ViewScene::open_paths(paths).is_ok());
+
+    write_click_only_output(root, true);
+    let scene = ViewScene::open(root).unwrap();
+    assert_eq!(
+        scene.paths().scoring,
+        ScoringPaths::ClickCosine {
+            pq: root.join("out/pq.safetensors")
+        }
+    );
+    let info = scene.info();
+    assert_eq!(
+        (info.gaussians, info.prompts.len(), info.click, info.score),
+        (CLICK_ONLY_DESCRIPTORS.len(), 0, true, "cosine")
+    );
+    assert_eq!(info.mode, "click_only");
+    assert_eq!(info.default_threshold, DEFAULT_CLICK_COSINE_THRESHOLD);
+    assert_eq!(DEFAULT_CLICK_COSINE_THRESHOLD, 0.9);
+    let json: serde_json::Value =
+        serde_json::from_slice(&answer(&scene, "/api/scene").body).unwrap();
+    assert_eq!(json["score"], "cosine");
+    assert_eq!(json["prompts"], serde_json::json!([]));
+    assert_eq!(json["click"], true);
+    assert_eq!(json["default_threshold"].as_f64().unwrap() as f32, 0.9);
+
+    // A click selects exactly the Gaussians whose decoded PQ descriptor has cosine >= T
+    // with the clicked mask's proposal descriptor (brute force in f64).
+    let pq = profuse_formats::Pq::read(root.join("out/pq.safetensors")).unwrap();
+    let decoded = |g: usize| -> Vec<f32> {
+        (0..pq.m)
+            .flat_map(|j| {
+                let c = pq.codes[g * pq.m + j] as usize;
+                pq.centroids[(j * PQ_KSUB + c) * pq.dsub..][..pq.dsub].to_vec()
+            })
+            .collect()
+    };
+    let cases: [(f64, usize, f32, &[u32]); 4] = [
+        (16.5, 0, 0.9, &[0, 1, 2, 3, 6]),
+        (16.5, 0, 0.5, &[0, 1, 2, 3, 4, 5, 6]),
+        (48.5, 1, 0.9, &[7, 8]),
+        (48.5, 1, 0.25, &[5, 7, 8, 11]),
+    ];
+    for (x, mask, threshold, expected) in cases {
+        let url = format!("/api/click?view=0&x={x}&y=24.5&threshold={threshold}");
+        let got = answer(&scene, &url);
+        let ids = answered_ids(&got);
+        let header = &got.headers.iter().find(|(k, _)| *k == "X-Click").unwrap().1;
+        assert!(header.contains("\"source\":\"proposal\""), "{header}");
+        let click = profuse_query::Click {
+            view: 0,
+            x,
+            y: 24.5,
+        };
+        let (target, same) = scene.select_click(click, threshold).unwrap();
+        assert_eq!(same, ids);
+        assert_eq!(
+            (target.mask, target.proposal),
+            (mask as u32, Some(mask as u32))
+        );
+        // A one-mask proposal's descriptor is its mask's feature, e_mask.
+        for (d, v) in target.embedding.iter().enumerate() {
+            let want = if d == mask { 1.0 } else { 0.0 };
+            assert!((v - want).abs() < 1e-6, "dim {d}: {v}");
+        }
+        let q: Vec<f64> = target.embedding.iter().map(|v| f64::from(*v)).collect();
+        let brute: Vec<u32> = (0..pq.len())
+            .filter(|&g| {
+                let x = decoded(g);
+                let dot: f64 = x.iter().zip(&q).map(|(a, b)| f64::from(*a) * b).sum();
+                let norm = x.iter().map(|a| f64::from(*a).powi(2)).sum::<f64>().sqrt();
+                pq.valid[g] == 1 && norm > 0.0 && dot / norm >= f64::from(threshold)
+            })
+            .map(|g| g as u32)
+            .collect();
+        assert_eq!(ids, brute, "click at x {x}, threshold {threshold}");
+        assert_eq!(ids, expected, "click at x {x}, threshold {threshold}");
+    }
+
+    // The export of a click's selection works without prompts too.
+    let got = answer(&scene, "/api/export.ply?view=0&x=16.5&y=24.5&threshold=0.9");
+    assert_eq!(got.status, 200, "{}", String::from_utf8_lossy(&got.body));
+    let ply = root.join("selection.ply");
+    std::fs::write(&ply, &got.body).unwrap();
+    assert_eq!(scene_io::read_inria_ply(&ply).unwrap().0.len(), 5);
+
+    // Text prompts: a 400 saying the scene has none.
+    let got = answer(&scene, "/api/select?prompt=sofa&threshold=0.5");
+    assert_eq!(got.status, 400);
+    let text = String::from_utf8_lossy(&got.body);
+    assert!(text.contains("no text prompts"), "{text}");
+    let err = scene.select_prompt("sofa", 0.5).unwrap_err();
+    let ViewError::BadRequest { name, reason } = &err else {
+        panic!("{err}")
+    };
+    assert_eq!(name, "prompt");
+    assert!(reason.contains("no text prompts"), "{reason}");
+    let got = answer(&scene, "/api/export.ply?prompt=sofa&threshold=0.5");
+    assert_eq!(got.status, 400);
+}
 
 #[test]
 fn a_taken_port_is_a_typed_error() {

@@ -1,8 +1,9 @@
 // profuse view: the page. Loads the scene's .splat rows and camera presets from the local
 // server, tints the Gaussians the server selects (pure magenta; the others grey, hidden or
 // in colour) and renders with gsplat.js. Clicking the view at a preset asks the server to
-// resolve the click (query by click). URL parameters: view=V (preset), prompt=NAME,
-// threshold=T, others=grey|hide|colour.
+// resolve the click (query by click). A scene without text prompts (info.prompts empty) is
+// click only: its threshold is a cosine (info.score), and the slider re-asks for the last
+// click. URL parameters: view=V (preset), prompt=NAME, threshold=T, others=grey|hide|colour.
 import * as SPLAT from "/gsplat.js";
 
 const $ = (id) => document.getElementById(id);
@@ -21,6 +22,7 @@ const renderer = new SPLAT.WebGLRenderer(canvas, []);
 const controls = new SPLAT.OrbitControls(camera, canvas);
 let splat = null;
 let selection = null; // Uint32Array of selected ids, or null for no selection
+let lastClick = null; // {view, x, y} of the click that made the selection, or null
 let preset = 0;
 let atPreset = true;
 let changedAt = performance.now();
@@ -93,10 +95,14 @@ async function selectPrompt() {
   try {
     if (name === "") {
       selection = null;
-      status("no prompt");
+      lastClick = null;
+      status(info.prompts.length ? "no prompt" : info.click
+        ? "click the view to select (this scene has no text prompts)"
+        : "no prompts: viewing Gaussians only");
     } else {
       const q = `prompt=${encodeURIComponent(name)}&threshold=${t}`;
       selection = (await fetchIds(`/api/select?${q}`)).ids;
+      lastClick = null;
       $("export").href = `/api/export.ply?${q}`;
       status(`${name}: ${selection.length} of ${info.gaussians} Gaussians`);
     }
@@ -112,14 +118,19 @@ async function selectClick(ev) {
   if (!atPreset) return status("choose a camera preset to click (clicks are resolved in its view)");
   // The window is the view's image: its pixel coordinates are the click's image coordinates.
   const win = $("window").getBoundingClientRect();
-  const sx = ev.clientX - win.left;
-  const sy = ev.clientY - win.top;
+  await askClick({ view: preset, x: ev.clientX - win.left, y: ev.clientY - win.top });
+}
+
+async function askClick(at) {
+  const { view, x: sx, y: sy } = at;
   try {
     const t = $("threshold").value;
-    const q = `view=${preset}&x=${sx}&y=${sy}&threshold=${t}`;
+    $("threshold-value").textContent = Number(t).toFixed(2);
+    const q = `view=${view}&x=${sx}&y=${sy}&threshold=${t}`;
     const got = await fetchIds(`/api/click?${q}`);
     $("export").href = `/api/export.ply?${q}`;
     selection = got.ids;
+    lastClick = at;
     $("prompt").value = "";
     state.selected = selection.length;
     status(`click (${sx.toFixed(0)}, ${sy.toFixed(0)}): ${selection.length} Gaussians\n${got.click}`);
@@ -170,7 +181,10 @@ $("others").value = params.get("others") ?? "grey";
 $("prompt").value = params.get("prompt") ?? "";
 $("preset").value = params.get("view") ?? 0;
 $("prompt").onchange = selectPrompt;
-$("threshold").oninput = selectPrompt;
+// The slider re-thresholds the current selection: the prompt's, or the last click's.
+$("threshold").oninput = () => ($("prompt").value === "" && lastClick ? askClick(lastClick) : selectPrompt());
+$("score-name").textContent = info.score;
+if (info.prompts.length === 0) $("prompt-label").style.display = "none";
 $("others").onchange = reload;
 $("preset").onchange = () => usePreset(Number($("preset").value));
 canvas.addEventListener("click", (ev) => { if (!$("orbit").checked) selectClick(ev); });
