@@ -78,46 +78,7 @@ impl Config {
     /// Applies `section.key=value` assignments (values in TOML syntax; a bare word is taken
     /// as a string), in order.
     pub fn with_overrides(&self, assignments: &[String]) -> Result<Config> {
-        let mut table = toml::Table::try_from(self).map_err(|e| PipelineError::Config {
-            key: "config".into(),
-            detail: e.to_string(),
-        })?;
-        for a in assignments {
-            let (path, value) = a.split_once('=').ok_or_else(|| PipelineError::Config {
-                key: a.clone(),
-                detail: "expected section.key=value".into(),
-            })?;
-            let (section, key) =
-                path.trim()
-                    .split_once('.')
-                    .ok_or_else(|| PipelineError::Config {
-                        key: path.into(),
-                        detail: "expected section.key (e.g. fuse.k)".into(),
-                    })?;
-            let value = parse_value(value.trim());
-            let Some(toml::Value::Table(sec)) = table.get_mut(section) else {
-                return Err(PipelineError::Config {
-                    key: path.into(),
-                    detail: format!(
-                        "unknown section {section:?}; sections: gs_init, gs_refine, warp_graph, fuse, pq, query, vertex_transfer"
-                    ),
-                });
-            };
-            if !sec.contains_key(key) {
-                let keys: Vec<&String> = sec.keys().collect();
-                return Err(PipelineError::Config {
-                    key: path.into(),
-                    detail: format!("unknown key {key:?}; keys of [{section}]: {keys:?}"),
-                });
-            }
-            sec.insert(key.to_string(), value);
-        }
-        toml::Value::Table(table)
-            .try_into()
-            .map_err(|e: toml::de::Error| PipelineError::Config {
-                key: "--set".into(),
-                detail: e.to_string(),
-            })
+        with_overrides(self, assignments)
     }
 
     /// The configuration as TOML text (every key, defaults included).
@@ -135,6 +96,60 @@ impl Config {
             .map_err(|e| out_of_domain("warp_graph", e))?;
         Ok(())
     }
+}
+
+/// Applies `section.key=value` assignments to any sectioned configuration (this one, or
+/// `profuse prepare`'s): unknown sections and keys are errors that list the known ones.
+pub(crate) fn with_overrides<T>(config: &T, assignments: &[String]) -> Result<T>
+where
+    T: Serialize + serde::de::DeserializeOwned,
+{
+    let mut table = toml::Table::try_from(config).map_err(|e| PipelineError::Config {
+        key: "config".into(),
+        detail: e.to_string(),
+    })?;
+    let sections: Vec<String> = table
+        .iter()
+        .filter(|(_, v)| v.is_table())
+        .map(|(k, _)| k.clone())
+        .collect();
+    for a in assignments {
+        let (path, value) = a.split_once('=').ok_or_else(|| PipelineError::Config {
+            key: a.clone(),
+            detail: "expected section.key=value".into(),
+        })?;
+        let (section, key) = path
+            .trim()
+            .split_once('.')
+            .ok_or_else(|| PipelineError::Config {
+                key: path.into(),
+                detail: "expected section.key (e.g. fuse.k)".into(),
+            })?;
+        let value = parse_value(value.trim());
+        let Some(toml::Value::Table(sec)) = table.get_mut(section) else {
+            return Err(PipelineError::Config {
+                key: path.into(),
+                detail: format!(
+                    "unknown section {section:?}; sections: {}",
+                    sections.join(", ")
+                ),
+            });
+        };
+        if !sec.contains_key(key) {
+            let keys: Vec<&String> = sec.keys().collect();
+            return Err(PipelineError::Config {
+                key: path.into(),
+                detail: format!("unknown key {key:?}; keys of [{section}]: {keys:?}"),
+            });
+        }
+        sec.insert(key.to_string(), value);
+    }
+    toml::Value::Table(table)
+        .try_into()
+        .map_err(|e: toml::de::Error| PipelineError::Config {
+            key: "--set".into(),
+            detail: e.to_string(),
+        })
 }
 
 fn parse_value(text: &str) -> toml::Value {

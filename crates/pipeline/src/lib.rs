@@ -50,6 +50,7 @@ pub mod evaluate;
 mod fnv;
 #[cfg(test)]
 mod identity;
+pub mod prepare;
 mod run;
 pub mod stage;
 pub mod sweep;

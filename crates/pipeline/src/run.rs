@@ -53,6 +53,11 @@ pub struct RunOptions {
     pub warp_partials: Vec<PathBuf>,
 }
 
+/// Why the query stage did not run on a scene without `prompts.safetensors`.
+pub const NO_PROMPTS: &str = "skipped: the scene has no prompts.safetensors, so it answers \
+     clicks and example masks only (`query run --click`); `prep prompts` with a CLIP text \
+     encoder adds text prompts";
+
 /// The stages of [`run`], in order, for [`RunOptions::until`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum StageName {
@@ -221,6 +226,14 @@ impl Paths {
         }
     }
 
+    /// `SCENE/gaussians.safetensors`, when the scene brings its geometry (`profuse
+    /// prepare` writes it: refined Gaussians or the user's own splat): the run then uses
+    /// it as [`RunOptions::gaussians`] instead of running gs-init and gs-refine.
+    pub fn prepared_gaussians(&self) -> Option<PathBuf> {
+        let p = self.scene.join("gaussians.safetensors");
+        p.is_file().then_some(p)
+    }
+
     /// LERF-style label files (`gt/label/`), when the scene has them.
     pub fn labels(&self) -> Option<PathBuf> {
         let p = self.gt.join("label");
@@ -299,11 +312,11 @@ fn check_input(stage: &'static str, path: &Path, expected: &'static str) -> Resu
     }
 }
 
-/// Where and how stages run.
-struct Runner<'a> {
-    out: &'a Path,
-    force: bool,
-    events: &'a (dyn Fn(Event<'_>) + Sync),
+/// Where and how stages run: `out` holds the completion records (`out/.stamps/`).
+pub(crate) struct Runner<'a> {
+    pub(crate) out: &'a Path,
+    pub(crate) force: bool,
+    pub(crate) events: &'a (dyn Fn(Event<'_>) + Sync),
 }
 
 /// The workspace crate whose code a stage runs (its completion record holds that crate's
@@ -318,12 +331,17 @@ pub(crate) fn stage_crate(stage: &str) -> Option<&'static str> {
         "pq" => "profuse-pq",
         "query" => "profuse-query",
         "vertex-transfer" => "vertex-transfer",
+        // `profuse prepare`'s own stages.
+        "poses" | "correspondences" => "scene-io",
+        "sfm" => "profuse-sfm",
+        "masks" | "features" | "prompts" => "profuse-prep",
+        "warps" => "warp-graph",
         _ => return None,
     })
 }
 
 /// Runs one stage unless up to date: clears its record, runs `body`, writes the record.
-fn stage(
+pub(crate) fn stage(
     r: &Runner<'_>,
     name: &str,
     params: Value,
@@ -397,7 +415,7 @@ fn stage(
     })
 }
 
-fn to_json(v: &impl Serialize) -> Value {
+pub(crate) fn to_json(v: &impl Serialize) -> Value {
     serde_json::to_value(v).unwrap_or(Value::Null)
 }
 
@@ -419,13 +437,15 @@ pub fn run(
     let p = Paths::new(scene, &out, config.fuse.no_proposals)
         .with_refinement(config.gs_refine.iterations > 0);
     check_input("gs-init", &p.cameras, "cameras file")?;
-    check_input(
-        "gs-init",
-        &p.matches,
-        "matches.safetensors or sparse_matches.safetensors",
-    )?;
+    let given_gaussians = opts.gaussians.clone().or_else(|| p.prepared_gaussians());
+    if given_gaussians.is_none() {
+        check_input(
+            "gs-init",
+            &p.matches,
+            "matches.safetensors or sparse_matches.safetensors",
+        )?;
+    }
     check_input("warp-graph", &p.masks, "masks file")?;
-    check_input("query", &p.prompts, "prompts file")?;
     profuse_formats::output::check_output_dir(&out)?;
     std::fs::create_dir_all(&out).map_err(io_err(&out, "cannot create the output directory"))?;
     let _lock = profuse_formats::output::lock_dir(&out, opts.wait)?;
@@ -441,7 +461,11 @@ pub fn run(
         events,
     };
     let mut lines = Vec::new();
-    let registered = run_stages(&runner, config, opts, &p, &mut lines)?;
+    let opts = RunOptions {
+        gaussians: given_gaussians,
+        ..opts.clone()
+    };
+    let registered = run_stages(&runner, config, &opts, &p, &mut lines)?;
     let timing_s = timing(&lines);
     Ok(Summary {
         scene: scene.to_path_buf(),
@@ -494,6 +518,18 @@ fn run_stages(
     if stop_after(StageName::Pq) {
         return Ok(registered);
     }
+    if !p.prompts.is_file() {
+        // A scene prepared without a text encoder answers clicks and example masks
+        // (`query run --click`) from the pq codes; text queries need prompts.
+        lines.push(StageLine {
+            stage: "query".into(),
+            ran: false,
+            reason: NO_PROMPTS.into(),
+            seconds: 0.0,
+            report: Value::Null,
+        });
+        return Ok(registered);
+    }
     lines.push(query_stage(runner, config, p)?);
     if stop_after(StageName::Query) {
         return Ok(registered);
@@ -543,7 +579,7 @@ pub fn fuse_shard(
 
 impl Runner<'_> {
     /// Progress of the running stage: `done` of `total` units.
-    fn progress(&self, done: usize, total: usize) {
+    pub(crate) fn progress(&self, done: usize, total: usize) {
         (self.events)(Event::Progress {
             done: done as u64,
             total: total as u64,

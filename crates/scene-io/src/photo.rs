@@ -35,13 +35,12 @@ use profuse_formats::Cameras;
 
 use crate::error::{invalid, Result};
 
-/// Checks that view `v` of both files is one photo seen through one focal length, and
-/// returns (source intrinsics, lens, the cut's origin, scene size).
-fn view_pair(
-    source: &Cameras,
-    scene: &Cameras,
-    v: usize,
-) -> Result<([f64; 4], [f64; 4], [f64; 2], [u32; 2])> {
+/// View `v` of a source camera and its scene camera: the source's intrinsics and lens,
+/// the cut's origin in the uncut pinhole image, the scene image's size.
+type ViewPair = ([f64; 4], [f64; 4], [f64; 2], [u32; 2]);
+
+/// Checks that view `v` of both files is one photo seen through one focal length.
+fn view_pair(source: &Cameras, scene: &Cameras, v: usize) -> Result<ViewPair> {
     let label = "source cameras";
     if source.len() != scene.len() {
         return Err(invalid(
@@ -65,7 +64,7 @@ fn view_pair(
     if stem(&source.image_names[v]) != stem(&scene.image_names[v]) {
         return Err(invalid(
             label,
-            &format!("image_names[{v}]"),
+            format!("image_names[{v}]"),
             format!(
                 "{:?} is not the photo of the scene's view {v} ({:?})",
                 source.image_names[v], scene.image_names[v]
@@ -77,7 +76,7 @@ fn view_pair(
     if fx != sfx || fy != sfy {
         return Err(invalid(
             label,
-            &format!("intrinsics[{v}]"),
+            format!("intrinsics[{v}]"),
             format!("focal ({fx}, {fy}) differs from the scene's ({sfx}, {sfy}): not its source"),
         ));
     }

@@ -9,6 +9,8 @@ use profuse_pipeline::config::Config;
 use profuse_pipeline::evaluate::evaluate;
 use profuse_pipeline::{run, Paths, RunOptions, Summary};
 
+mod prepare;
+
 fn tiny_scene(dir: &Path) {
     synth::generate(&synth::Config::preset(synth::Preset::Tiny, 0), dir).unwrap();
 }
@@ -700,4 +702,54 @@ fn index_and_both_semantics_run_end_to_end_and_meet_the_pq_floors() {
         assert!(r.contains(&(stage, expected)), "{stage}: {r:?}");
     }
     floors("both");
+}
+
+#[test]
+fn a_scene_with_its_own_gaussians_and_no_prompts_is_fused_and_answers_clicks_only() {
+    // What `profuse prepare` writes for real photos without a text encoder: the geometry
+    // as SCENE/gaussians.safetensors, dense warps, masks, no prompts, no sparse matches.
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let computed = dir.path().join("computed");
+    let opts = RunOptions {
+        out: Some(computed.clone()),
+        ..RunOptions::default()
+    };
+    let a = run(dir.path(), &tiny_config(), &opts, &|_| {}).unwrap();
+    std::fs::copy(
+        computed.join("gaussians.safetensors"),
+        dir.path().join("gaussians.safetensors"),
+    )
+    .unwrap();
+    std::fs::remove_file(dir.path().join("prompts.safetensors")).unwrap();
+    let _ = std::fs::remove_file(dir.path().join("sparse_matches.safetensors"));
+    let b = run(dir.path(), &tiny_config(), &RunOptions::default(), &|_| {}).unwrap();
+    assert_eq!(
+        ran(&b),
+        vec![
+            ("gaussians", true),
+            ("warp-graph", true),
+            ("fuse", true),
+            ("pq", true),
+            ("query", false)
+        ]
+    );
+    let skipped = &b.stages[4];
+    assert!(
+        skipped.reason.contains("no prompts.safetensors"),
+        "{}",
+        skipped.reason
+    );
+    // The same geometry gives the same registration as the run that computed it.
+    for file in ["proposals.safetensors", "features.safetensors"] {
+        assert_eq!(
+            std::fs::read(computed.join(file)).unwrap(),
+            std::fs::read(b.out.join(file)).unwrap(),
+            "{file}"
+        );
+    }
+    assert!(a.stages.iter().any(|l| l.stage == "query" && l.ran));
+    // A second run is up to date, the skipped query included.
+    let c = run(dir.path(), &tiny_config(), &RunOptions::default(), &|_| {}).unwrap();
+    assert!(c.stages.iter().all(|l| !l.ran), "{:?}", ran(&c));
 }

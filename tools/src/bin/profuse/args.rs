@@ -18,6 +18,14 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Make a scene directory from a capture: photos alone (COLMAP poses), a COLMAP
+    /// project, or a transforms.json, optionally with a splat trained elsewhere. Stages
+    /// (each skipped when up to date): sfm, poses (undistort and cut), correspondences
+    /// (COLMAP's tracks or keypoint pairs), gs-init and gs-refine (or the given splat),
+    /// masks (SAM), features (CLIP crops with --clip-image), prompts (with --clip-text),
+    /// warps. Prints one JSON report (also SCENE/prepare.json); `profuse run SCENE` then
+    /// fuses the scene and `profuse view SCENE/out` shows it.
+    Prepare(crate::prepare::PrepareArgs),
     /// Validate a ProFuse file and print its kind, version, tensors, metadata and counts as
     /// JSON on stdout. Exit code 0 when valid, 1 when invalid (the error also goes to stderr).
     Inspect {

@@ -18,12 +18,14 @@ use profuse_tools::{chatty, print_result, run, BoxError};
 use serde_json::Value;
 
 mod args;
+mod prepare;
 use args::{Cli, Command, Common, SceneArgs};
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
         Command::Inspect { file } => inspect(&file),
+        Command::Prepare(a) => run(|| prepare::run(a)),
         Command::Run {
             scene,
             proposals,

@@ -211,6 +211,11 @@ pub(crate) struct ClickArgs {
         requires = "masks"
     )]
     pub(crate) click: Option<Vec<f64>>,
+    /// X and Y of --click are pixels of the original photo, whose cameras (lens
+    /// included) are this file (SCENE/source_cameras.safetensors of `profuse prepare`):
+    /// the click is undistorted and moved by the cut into the scene's pixels first.
+    #[arg(long, value_name = "FILE", requires = "click")]
+    pub(crate) click_on_photo: Option<PathBuf>,
     /// The masks file (profuse.masks) the click reads its mask from.
     #[arg(long, value_name = "FILE")]
     pub(crate) masks: Option<PathBuf>,

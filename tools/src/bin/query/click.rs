@@ -40,6 +40,17 @@ pub(crate) fn inputs(
     };
     let proposals_name = a.click.proposals.as_ref().map(|p| p.display().to_string());
     let scene = Scene::new(&gaussians, &cameras, &masks).named(names);
+    let (x, y) = match &a.click.click_on_photo {
+        None => (x, y),
+        Some(path) => {
+            let source = Cameras::read(path)?;
+            let p = scene_io::photo::photo_to_scene(&source, &cameras, view as usize, [x, y])?
+                .ok_or_else(|| {
+                    format!("--click-on-photo: photo pixel ({x}, {y}) lies outside the scene's cut")
+                })?;
+            (p[0], p[1])
+        }
+    };
     let click = Click {
         view: view as usize,
         x,

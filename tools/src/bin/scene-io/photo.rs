@@ -1,7 +1,7 @@
 //! `scene-io to-photo` and `scene-io photo-point`: between a prepared scene's pixels and
 //! the user's original photos (`scene_io::photo`).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use profuse_formats::{Cameras, FileKind};
 use profuse_tools::{write_png, BoxError};
@@ -29,8 +29,8 @@ impl SceneCameras {
 }
 
 /// `scene-io to-photo`: a mask PNG in the scene's pixels -> the same mask on the photo.
-pub fn to_photo(at: &SceneCameras, mask: &PathBuf, out: &PathBuf) -> Result<Value, BoxError> {
-    profuse_tools::check_outputs([out.as_path()])?;
+pub fn to_photo(at: &SceneCameras, mask: &Path, out: &Path) -> Result<Value, BoxError> {
+    profuse_tools::check_outputs([out])?;
     let (source, scene) = at.read()?;
     let img = image::open(mask)
         .map_err(|e| format!("{}: {e}", mask.display()))?
