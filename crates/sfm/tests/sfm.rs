@@ -300,32 +300,9 @@ fn fox() -> Option<PathBuf> {
     }
 }
 
-/// Rotation matrix (row-major) of a unit quaternion (w, x, y, z).
-fn quat_to_r(q: [f64; 4]) -> [[f64; 3]; 3] {
-    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-    let [w, x, y, z] = q.map(|v| v / n);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
-}
-
 /// Camera centre −Rᵀt of a world-to-camera pose.
 fn centre(q: [f64; 4], t: [f64; 3]) -> [f64; 3] {
-    let r = quat_to_r(q);
+    let r = profuse_formats::camera::quaternion_to_rotation(q).expect("a unit quaternion");
     std::array::from_fn(|j| -(0..3).map(|i| r[i][j] * t[i]).sum::<f64>())
 }
 
