@@ -314,9 +314,11 @@ fn prepare_checked(
     poses::check_held_out_names(&photos, &opts.held_out)?;
     layout::check_photo_sizes(&photos)?;
     layout::check_photos_decode(&photos)?;
-    if matches!(layout, Layout::Photos { .. }) {
-        sfm::backend()?;
-    }
+    // Found once, before anything is written; the sfm stage runs with it.
+    let sfm_backend = match layout {
+        Layout::Photos { .. } => Some(sfm::backend()?),
+        _ => None,
+    };
     let sam = if opts.geometry_only {
         None
     } else {
@@ -334,7 +336,14 @@ fn prepare_checked(
         events,
     };
     let mut lines = Vec::new();
-    let posed = poses::poses(&runner, opts, layout, &mut lines)?;
+    let posed = poses::poses(
+        &runner,
+        opts,
+        layout,
+        &photos,
+        sfm_backend.as_ref(),
+        &mut lines,
+    )?;
     let held_out = poses::held_out_views(&posed.cameras, &opts.held_out)?;
     let mut notes = Vec::new();
     geometry::geometry(

@@ -87,27 +87,37 @@ pub(crate) fn input_photos(layout: &Layout) -> Result<Vec<PathBuf>> {
     Ok(photos)
 }
 
-/// Runs the sfm stage (photos only) and the poses stage; returns the scene's cameras.
+/// Runs the sfm stage (photos only, with `sfm`, the backend found before anything was
+/// written) and the poses stage on `photos` ([`input_photos`]); returns the scene's
+/// cameras.
 pub(crate) fn poses(
     r: &Runner<'_>,
     opts: &PrepareOptions,
     layout: &Layout,
+    photos: &[PathBuf],
+    sfm: Option<&profuse_sfm::Backend>,
     lines: &mut Vec<StageLine>,
 ) -> Result<Posed> {
     let scene = &opts.scene;
-    let (source_file, source_dir, model) = match layout {
-        Layout::Photos { images } => {
-            let model = super::sfm::sfm_stage(r, opts, images, lines)?;
+    let (source_file, source_dir, model) = match (layout, sfm) {
+        (Layout::Photos { images }, Some(backend)) => {
+            let model = super::sfm::sfm_stage(r, opts, backend, images, photos, lines)?;
             (model.clone(), images.clone(), Some(model))
         }
-        Layout::Colmap { images, model } => (model.clone(), images.clone(), Some(model.clone())),
-        Layout::Transforms { json } => (
+        (Layout::Photos { .. }, None) => {
+            return Err(PrepareError::Tool {
+                detail: "a folder of photos needs COLMAP for its poses".into(),
+            })
+        }
+        (Layout::Colmap { images, model }, _) => {
+            (model.clone(), images.clone(), Some(model.clone()))
+        }
+        (Layout::Transforms { json }, _) => (
             json.clone(),
             json.parent().unwrap_or(Path::new(".")).to_path_buf(),
             None,
         ),
     };
-    let photos = input_photos(layout)?;
     let mut inputs = vec![source_file.clone()];
     inputs.extend(photos.iter().cloned());
     let images_dir = scene.join("images");
@@ -150,7 +160,7 @@ pub(crate) fn poses(
     lines.push(line);
     let cameras = Cameras::read(cameras_path(scene)).map_err(stage_err("poses"))?;
     let source = Cameras::read(source_cameras_path(scene)).map_err(stage_err("poses"))?;
-    let dropped = dropped_photos(&photos, &source, &source_dir);
+    let dropped = dropped_photos(photos, &source, &source_dir);
     Ok(Posed {
         cameras,
         source,

@@ -5,7 +5,6 @@ use std::path::{Path, PathBuf};
 
 use serde_json::json;
 
-use super::layout::photos_in;
 use super::{report_json, work_dir, PrepareError, PrepareOptions, Result};
 use crate::error::stage_err;
 use crate::run::{stage, to_json, Runner, StageLine};
@@ -18,12 +17,14 @@ pub(crate) fn backend() -> Result<profuse_sfm::Backend> {
     })
 }
 
-/// Runs COLMAP on `images` into `SCENE/.prepare/sfm/` (unless up to date); returns the
-/// model folder (`sparse/0`).
+/// Runs COLMAP (`backend`) on the `photos` of `images` into `SCENE/.prepare/sfm/`
+/// (unless up to date); returns the model folder (`sparse/0`).
 pub(crate) fn sfm_stage(
     r: &Runner<'_>,
     opts: &PrepareOptions,
+    backend: &profuse_sfm::Backend,
     images: &Path,
+    photos: &[PathBuf],
     lines: &mut Vec<StageLine>,
 ) -> Result<PathBuf> {
     let work = work_dir(&opts.scene).join("sfm");
@@ -33,11 +34,10 @@ pub(crate) fn sfm_stage(
         r,
         "sfm",
         json!({"sfm": to_json(sfm)}),
-        photos_in(images),
+        photos.to_vec(),
         vec![model.clone()],
         || {
-            let backend = profuse_sfm::find_backend(None).map_err(stage_err("sfm"))?;
-            let report = profuse_sfm::run_sfm(&backend, images, &work, sfm, &mut |p| {
+            let report = profuse_sfm::run_sfm(backend, images, &work, sfm, &mut |p| {
                 if let profuse_sfm::SfmProgress::Advanced { done, total, .. } = p {
                     r.progress(done, total);
                 }
