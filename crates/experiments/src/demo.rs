@@ -10,10 +10,11 @@ use std::time::Instant;
 
 use serde_json::{json, Map, Value};
 
-use crate::config::Config;
-use crate::error::{io_err, stage_err, Result};
+use profuse_pipeline::config::Config;
+use profuse_pipeline::support::{io_err, stage_err, write_text};
+use profuse_pipeline::{run, Event, Paths, Result, RunOptions, Summary};
+
 use crate::evaluate::evaluate_run;
-use crate::run::{run, Event, Paths, RunOptions, Summary};
 
 /// The demo's departures from `profuse run`'s defaults, so that it runs in about a minute
 /// on two cores: gs-init samples 3,000 matches per reference view (the paper's 15,000 are
@@ -160,7 +161,7 @@ pub fn run_demo(
         opts.seed,
         opts.preset.name(),
         opts.faults.name(),
-        crate::stage::crate_code("synth").unwrap_or("unknown")
+        crate::crate_code("synth").unwrap_or("unknown")
     );
     let stamp = scene.join(".demo-seed");
     let fresh = std::fs::read_to_string(&stamp).ok().as_deref() == Some(stamp_text.as_str());
@@ -184,7 +185,7 @@ pub fn run_demo(
     };
     let x = run_experiment(&scene, generate, &opts.config, &opts.run, events)?;
     if generate.is_some() {
-        crate::run::write_text(&stamp, &stamp_text)?;
+        write_text(&stamp, &stamp_text)?;
     }
     let generate_s = x.generate_s;
 

@@ -8,9 +8,9 @@ use profuse_formats::{
 };
 use serde_json::{json, Value};
 
-use crate::config::Config;
-use crate::error::{stage_err, Result};
-use crate::run::{fuse_job, Paths, RegisteredMasks, Summary};
+use profuse_pipeline::config::Config;
+use profuse_pipeline::support::{fuse_job, stage_err};
+use profuse_pipeline::{Paths, RegisteredMasks, Result, Summary};
 
 /// Every score the ground truth allows, as a JSON object with keys:
 /// `init_median_surface_dist_rel` and `init_surface` (gt/scene.json; of the Gaussians the
@@ -98,7 +98,7 @@ pub fn evaluate(p: &Paths) -> Result<BTreeMap<String, Value>> {
 /// [`evaluate`] plus the wrong-class pixel share of the run's registration
 /// ([`wrong_class`]): keys `wrong_class_pixel_share` and `wrong_class` (its counts) when
 /// the scene has `gt/views.safetensors` with object ids, `gt/scene.json` and prompts with
-/// class ids. `summary` is what [`crate::run`] returned for this variant (its in-memory
+/// class ids. `summary` is what [`profuse_pipeline::run`] returned for this variant (its in-memory
 /// registration is used when the fuse stage ran; otherwise it is recomputed).
 pub fn evaluate_run(
     p: &Paths,

@@ -16,14 +16,14 @@ use std::time::Instant;
 use serde::Serialize;
 use serde_json::Value;
 
-use crate::config::Config;
 use profuse_formats::{FileKind, Masks};
+use profuse_pipeline::config::Config;
+use profuse_pipeline::fnv::Fnv;
+use profuse_pipeline::support::{image_paths, io_err, stage_err};
+use profuse_pipeline::{run, Paths, PipelineError, Result, RunOptions};
 
 use crate::demo::{run_experiment, Experiment};
-use crate::error::{io_err, stage_err, PipelineError, Result};
 use crate::evaluate::evaluate_run;
-use crate::fnv::Fnv;
-use crate::run::{image_paths, run, Paths, RunOptions};
 
 /// What to sweep.
 #[derive(Debug, Clone)]

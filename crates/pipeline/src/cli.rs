@@ -1,19 +1,15 @@
-//! What `profuse run`, `demo` and `sweep` do besides parsing arguments: read the
-//! configuration files, run and score a scene and record its summary, and lay out the
-//! paper's Table 4 timing. (The tool only parses, displays progress and prints.)
+//! What `profuse run` does besides parsing arguments: read the configuration files and lay
+//! out the paper's Table 4 timing. (The tool only parses, displays progress and prints;
+//! running, scoring and recording a synthetic scene is `profuse_experiments::record`.)
 
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use serde_json::{json, Value};
-
 use crate::config::Config;
 use crate::error::{io_err, Result};
-use crate::evaluate::evaluate_run;
-use crate::run::{run, write_text, Event, Paths, RunOptions};
 
 /// The text of a configuration file and its name for messages (`None`: no file).
-fn read_config_file(path: Option<&Path>) -> Result<Option<(String, String)>> {
+pub fn read_config_file(path: Option<&Path>) -> Result<Option<(String, String)>> {
     path.map(|p| {
         std::fs::read_to_string(p)
             .map(|text| (text, p.display().to_string()))
@@ -30,42 +26,6 @@ pub fn run_config(path: Option<&Path>, set: &[String]) -> Result<Config> {
         None => Config::default(),
     };
     base.with_overrides(set)
-}
-
-/// The configuration of `profuse demo` and `sweep`: the demo's settings, then the file's
-/// keys, then the assignments ([`crate::demo::demo_config`]).
-pub fn demo_config(path: Option<&Path>, set: &[String]) -> Result<Config> {
-    let file = read_config_file(path)?;
-    crate::demo::demo_config(file.as_ref().map(|(t, l)| (t.as_str(), l.as_str())), set)
-}
-
-/// Runs the pipeline on a scene, scores it against the scene's ground truth when it has
-/// one, and writes the summary (with the scores) as `summary[_baseline].json` next to the
-/// outputs. Returns that summary.
-pub fn run_and_record(
-    scene: &Path,
-    config: &Config,
-    opts: &RunOptions,
-    events: &(dyn Fn(Event<'_>) + Sync),
-) -> Result<Value> {
-    let summary = run(scene, config, opts, events)?;
-    let paths = Paths::new(scene, &summary.out, config.fuse.no_proposals);
-    // A run that stopped early has nothing to score yet.
-    let scores = match opts.until {
-        None => json!(evaluate_run(&paths, config, &summary)?),
-        Some(_) => Value::Null,
-    };
-    let mut value = serde_json::to_value(&summary).unwrap_or(Value::Null);
-    if let Value::Object(map) = &mut value {
-        map.insert("metrics".into(), json!(scores));
-        map.insert("config".into(), json!(summary.out.join("config.toml")));
-    }
-    let text = serde_json::to_string_pretty(&value).unwrap_or_default();
-    write_text(
-        &summary.out.join(format!("summary{}.json", paths.suffix)),
-        &text,
-    )?;
-    Ok(value)
 }
 
 /// The timing table in the shape of the paper's Table 4, from a summary's `timing_s`.

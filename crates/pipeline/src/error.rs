@@ -53,7 +53,7 @@ pub enum PipelineError {
 pub type Result<T, E = PipelineError> = std::result::Result<T, E>;
 
 /// Wraps a stage crate's error.
-pub(crate) fn stage_err<E>(stage: &'static str) -> impl FnOnce(E) -> PipelineError
+pub fn stage_err<E>(stage: &'static str) -> impl FnOnce(E) -> PipelineError
 where
     E: std::error::Error + Send + Sync + 'static,
 {
@@ -64,7 +64,7 @@ where
 }
 
 /// Wraps an I/O error with its path.
-pub(crate) fn io_err<'a>(
+pub fn io_err<'a>(
     path: &'a std::path::Path,
     action: &'static str,
 ) -> impl FnOnce(std::io::Error) -> PipelineError + 'a {

@@ -5,10 +5,17 @@
 use std::path::{Path, PathBuf};
 
 /// FNV-1a 64: not cryptographic; it tells edits apart, nobody forges them.
-#[derive(Clone, Copy)]
+#[derive(Debug, Clone, Copy)]
 pub struct Fnv(pub u64);
 
+impl Default for Fnv {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 impl Fnv {
+    /// The FNV-1a 64 offset basis: the hash of no bytes.
     pub fn new() -> Self {
         Self(0xcbf2_9ce4_8422_2325)
     }

@@ -1,8 +1,8 @@
-//! The ProFuse pipeline as one library call, behind `profuse run`, `profuse demo` and
-//! `profuse sweep`: [`run`] runs the stages, [`evaluate`] scores a run against a synthetic
-//! scene's ground truth, [`demo`] is the paper's central experiment (ProFuse against the
-//! `--no-proposals` baseline on a synth scene) and [`sweep`] repeats it over seeds and
-//! fault sets (the accuracy harness).
+//! The ProFuse pipeline as one library call, behind `profuse run` and `profuse prepare`:
+//! [`run`] runs the stages on a scene directory, [`prepare`] makes that scene directory from
+//! a capture (photos, a COLMAP project, a transforms.json, a trained splat). The synthetic
+//! experiments (`profuse demo`, `profuse sweep`) and their ground-truth scoring live in
+//! `profuse-experiments`, so that this crate links no scene generator.
 //!
 //! # Design
 //!
@@ -20,16 +20,10 @@
 //! * **One configuration** ([`config::Config`]): every parameter of every stage with the
 //!   paper's values as defaults, from TOML and `section.key=value` overrides; the
 //!   effective configuration is written as `out/config.toml`.
-//! * **Ground truth when present** ([`evaluate`]): synthetic scenes carry `gt/`, from which
-//!   the run is scored (surface distance of the run's Gaussians, proposal ARI, LERF mIoU
-//!   and Acc@0.25, ScanNet-style mIoU) and, with [`evaluate::evaluate_run`], the share of
-//!   mask pixels whose registered descriptor names the wrong class, from the registration
-//!   the fuse stage keeps in memory ([`Summary::registered`]) or recomputes; nothing extra
-//!   is written to the output directory.
-//! * **Experiments are library calls too** ([`demo::run_experiment`], [`sweep::sweep`]):
-//!   the tools only parse arguments and display progress. Sweep rows run one after the
-//!   other (each run is parallel inside) in the fixed order fault set, then seed, and each
-//!   equals the `profuse demo` of the same seed, fault set and options.
+//! * **What experiments need is public** ([`support`], [`Summary::registered`]): the
+//!   registration the fuse stage keeps in memory, the fuse job of a configuration, the
+//!   scene's image list, so that `profuse-experiments` scores a run without re-reading or
+//!   re-implementing any stage.
 //!
 //! # Example
 //!
@@ -44,16 +38,20 @@
 
 pub mod cli;
 pub mod config;
-pub mod demo;
 mod error;
-pub mod evaluate;
-mod fnv;
+pub mod fnv;
 #[cfg(test)]
 mod identity;
 pub mod prepare;
 mod run;
 pub mod stage;
-pub mod sweep;
+
+/// Helpers shared with the crates built on the pipeline (`profuse-experiments`): the same
+/// error wrapping, atomic writes and stage jobs the pipeline uses itself.
+pub mod support {
+    pub use crate::error::{io_err, stage_err};
+    pub use crate::run::{fuse_job, image_paths, write_text};
+}
 
 pub use error::{PipelineError, Result};
 pub use run::{

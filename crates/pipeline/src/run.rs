@@ -279,7 +279,7 @@ pub struct Summary {
     pub timing_s: BTreeMap<String, f64>,
     /// What every mask registered in this invocation's fuse stage
     /// ([`profuse_fuse::registered_mask_descriptors`]), for the wrong-class share of
-    /// [`crate::evaluate::evaluate_run`]; `None` when the fuse stage was up to date (then
+    /// `profuse_experiments::evaluate::evaluate_run`; `None` when the fuse stage was up to date (then
     /// it is recomputed from the files). Not serialised.
     #[serde(skip)]
     pub registered: Option<RegisteredMasks>,
@@ -985,7 +985,7 @@ fn vertex_transfer_stage(
 
 /// The fuse stage's job over every view: the proposals under the configured
 /// registration, or one group per mask for `fuse.no_proposals`; it writes nothing.
-pub(crate) fn fuse_job(config: &Config, p: &Paths) -> profuse_fuse::job::Job {
+pub fn fuse_job(config: &Config, p: &Paths) -> profuse_fuse::job::Job {
     let job = profuse_fuse::job::Job::new(&p.gaussians, &p.cameras, &p.masks);
     if config.fuse.no_proposals {
         job.baseline()
@@ -1023,7 +1023,7 @@ fn timing(lines: &[StageLine]) -> BTreeMap<String, f64> {
 }
 
 /// Every image of the cameras file (gs-init reads reference views' images).
-pub(crate) fn image_paths(p: &Paths) -> Result<Vec<PathBuf>> {
+pub fn image_paths(p: &Paths) -> Result<Vec<PathBuf>> {
     let cams = Cameras::read(&p.cameras).map_err(stage_err("gs-init"))?;
     Ok(cams.image_names.iter().map(|n| p.scene.join(n)).collect())
 }
@@ -1132,7 +1132,7 @@ fn clean_leftovers(out: &Path) {
 }
 
 /// Writes a text file atomically.
-pub(crate) fn write_text(path: &Path, text: &str) -> Result<()> {
+pub fn write_text(path: &Path, text: &str) -> Result<()> {
     use std::io::Write;
     profuse_formats::write_atomically(path, |mut f| f.write_all(text.as_bytes()))
         .map_err(|(action, e)| io_err(path, action)(e))

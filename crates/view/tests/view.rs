@@ -497,9 +497,9 @@ fn demo() -> &'static Path {
         // its scene and outputs are up to date).
         let scene = std::env::var_os("PROFUSE_VIEW_DEMO")
             .map_or_else(|| dir.path().join("demo"), PathBuf::from);
-        let mut opts = profuse_pipeline::demo::DemoOptions::new(0).unwrap();
+        let mut opts = profuse_experiments::demo::DemoOptions::new(0).unwrap();
         opts.scene = Some(scene.clone());
-        profuse_pipeline::demo::run_demo(&opts, &|_| {}, &|_| {}).unwrap();
+        profuse_experiments::demo::run_demo(&opts, &|_| {}, &|_| {}).unwrap();
         (dir, scene)
     });
     scene

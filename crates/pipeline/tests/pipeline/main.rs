@@ -4,9 +4,9 @@
 
 use std::path::Path;
 
+use profuse_experiments::evaluate::evaluate;
 use profuse_formats::FileKind;
 use profuse_pipeline::config::Config;
-use profuse_pipeline::evaluate::evaluate;
 use profuse_pipeline::{run, Paths, RunOptions, Summary};
 
 mod prepare;
@@ -222,7 +222,7 @@ fn missing_inputs_and_bad_parameters_name_the_file_or_key_and_write_nothing() {
 fn given_proposals_replace_warp_graph() {
     let dir = tempfile::tempdir().unwrap();
     tiny_scene(dir.path());
-    let scores = profuse_pipeline::sweep::run_oracle(dir.path(), &tiny_config(), None).unwrap();
+    let scores = profuse_experiments::sweep::run_oracle(dir.path(), &tiny_config(), None).unwrap();
     assert_eq!(scores["proposals"]["ari"].as_f64(), Some(1.0), "{scores:?}");
     assert_eq!(scores["proposals"]["purity"].as_f64(), Some(1.0));
     assert!(scores["lerf_miou"].as_f64().unwrap() > 25.0, "{scores:?}");

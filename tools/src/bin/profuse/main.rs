@@ -10,8 +10,9 @@ use std::process::ExitCode;
 
 use clap::Parser;
 use profuse_pipeline::cli;
-use profuse_pipeline::demo::{self, DemoOptions};
-use profuse_pipeline::sweep::{self, SweepEvent, SweepOptions};
+use profuse_experiments::demo::{self, DemoOptions};
+use profuse_experiments::record;
+use profuse_experiments::sweep::{self, SweepEvent, SweepOptions};
 use profuse_pipeline::RunOptions;
 use profuse_tools::stages::StageBars;
 use profuse_tools::{chatty, print_result, run, BoxError};
@@ -93,7 +94,7 @@ fn main() -> ExitCode {
                 preset,
                 out,
                 keep,
-                config: cli::demo_config(config.as_deref(), &set)?,
+                config: record::demo_config(config.as_deref(), &set)?,
                 oracle,
             };
             run_sweep(&opts, json, quiet)
@@ -128,7 +129,7 @@ fn run_options(common: &Common) -> RunOptions {
 fn run_scene(scene: &Path, opts: &RunOptions, common: &Common) -> Result<Value, BoxError> {
     let config = cli::run_config(common.config.as_deref(), &common.set)?;
     let bars = StageBars::new(chatty(common.quiet));
-    let value = cli::run_and_record(scene, &config, opts, &|e| bars.event(e))?;
+    let value = record::run_and_record(scene, &config, opts, &|e| bars.event(e))?;
     print_timing(common.quiet, &value);
     Ok(value)
 }
@@ -193,7 +194,7 @@ fn demo(
         seed,
         preset: scene.preset,
         faults: synth::FaultSet::parse(&scene.faults)?,
-        config: cli::demo_config(common.config.as_deref(), &common.set)?,
+        config: record::demo_config(common.config.as_deref(), &common.set)?,
         run: run_options(common),
     };
     let bars = StageBars::new(show);
