@@ -18,6 +18,10 @@
 //! the SAM embedding ([`pool`]) or a CLIP image encoder ([`clip`]); prompts from a CLIP
 //! text encoder with CLIP's BPE tokeniser.
 //!
+//! [`xfeat`] makes keypoint matches between view pairs for the geometry: XFeat* semi-dense
+//! matching with the package's own weights (exported to ONNX, embedded), pairs chosen by
+//! camera neighbourhood.
+//!
 //! The stage is built so that more front-end steps (e.g. dense warps from geometry) can
 //! be added as modules next to these, behind the same `prep` tool.
 
@@ -33,5 +37,6 @@ pub mod rle;
 pub mod runtime;
 pub mod sam;
 pub mod shard;
+pub mod xfeat;
 
 pub use error::{PrepError, Result};
