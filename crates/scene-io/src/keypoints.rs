@@ -30,7 +30,7 @@ use serde::Serialize;
 
 use crate::error::{invalid, missing, Result};
 use crate::fsutil::show;
-use crate::npy::read_npz;
+use crate::npy::{read_npz, write_npz, NpyArray, NpyData};
 use crate::undistort::{to_target_pixel, PointDrop};
 
 /// How to read the keypoint files.
@@ -176,6 +176,41 @@ pub fn import_keypoint_pairs(
         extra: Default::default(),
     };
     Ok((matches, report))
+}
+
+/// The pair file name of two images: `<stem_i>_<stem_j>.npz` (the file stems of the
+/// image names, which [`import_keypoint_pairs`] maps back to views).
+pub fn pair_file_name(name_i: &str, name_j: &str) -> String {
+    let stem = |n: &str| {
+        Path::new(n)
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    format!("{}_{}.npz", stem(name_i), stem(name_j))
+}
+
+/// Writes one keypoint-pair file in the layout [`import_keypoint_pairs`] reads (and XFeat
+/// scripts save): float32 arrays `kpts_i` and `kpts_j` of shape (n, 2), row r of both one
+/// match, pixel centres at integers. Written atomically (temporary file, then rename).
+pub fn write_keypoint_pair(path: &Path, kpts_i: &[[f32; 2]], kpts_j: &[[f32; 2]]) -> Result<()> {
+    let label = show(path);
+    if kpts_i.len() != kpts_j.len() {
+        return Err(invalid(
+            &label,
+            "kpts_j",
+            format!("{} rows, but kpts_i has {}", kpts_j.len(), kpts_i.len()),
+        ));
+    }
+    let array = |rows: &[[f32; 2]]| {
+        NpyArray::new(
+            vec![rows.len(), 2],
+            NpyData::F32(rows.iter().flatten().copied().collect()),
+        )
+        .ok_or_else(|| invalid(&label, "keypoints", "too many rows"))
+    };
+    let (a, b) = (array(kpts_i)?, array(kpts_j)?);
+    write_npz(path, &[("kpts_i", &a), ("kpts_j", &b)])
 }
 
 /// View index of each image stem; an error when two views share a stem.

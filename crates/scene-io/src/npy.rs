@@ -385,6 +385,37 @@ pub fn write_npy(path: impl AsRef<Path>, array: &NpyArray) -> Result<()> {
     write_atomically(path.as_ref(), |out| out.write_all(&bytes))
 }
 
+/// The `.npz` bytes of `arrays` (member `<name>.npy` each, in the given order), stored
+/// uncompressed as `np.savez` writes them; every time stamp is the zip epoch (1980-01-01),
+/// so the same arrays always give the same bytes. `label` names the file in errors.
+pub fn npz_bytes(arrays: &[(&str, &NpyArray)], label: &str) -> Result<Vec<u8>> {
+    use std::io::Write;
+    let zip_err = |source| SceneError::Zip {
+        path: label.to_string(),
+        source,
+    };
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    for (name, array) in arrays {
+        let bytes = array.to_bytes();
+        let options = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Stored)
+            .large_file(bytes.len() as u64 >= u64::from(u32::MAX));
+        zip.start_file(format!("{name}.npy"), options)
+            .map_err(zip_err)?;
+        zip.write_all(&bytes)
+            .map_err(|e| io_err(label, "cannot add a member", e))?;
+    }
+    Ok(zip.finish().map_err(zip_err)?.into_inner())
+}
+
+/// Writes a `.npz` file (see [`npz_bytes`]) atomically: a temporary file in the same
+/// folder, renamed over `path` once complete.
+pub fn write_npz(path: impl AsRef<Path>, arrays: &[(&str, &NpyArray)]) -> Result<()> {
+    let path = path.as_ref();
+    let bytes = npz_bytes(arrays, &show(path))?;
+    write_atomically(path, |out| out.write_all(&bytes))
+}
+
 /// Reads every `.npy` member of a `.npz` archive, keyed by member name without `.npy`,
 /// inflating at most [`MAX_NPZ_BYTES`] in all.
 pub fn read_npz(path: impl AsRef<Path>) -> Result<BTreeMap<String, NpyArray>> {
@@ -968,6 +999,28 @@ mod tests {
         assert_eq!(d.get("shape"), Some(&PyValue::Tuple(vec![])));
         assert!(parse_dict("{'descr': '<f4'").is_err());
         assert!(parse_dict("{'descr': <f4}").is_err());
+    }
+
+    #[test]
+    fn npz_round_trip_is_deterministic() {
+        let a = NpyArray::new(
+            vec![3, 2],
+            NpyData::F32(vec![0.5, 1.0, 2.0, -3.0, 4.25, 5.0]),
+        );
+        let b = NpyArray::new(vec![0, 2], NpyData::F32(Vec::new()));
+        let (Some(a), Some(b)) = (a, b) else {
+            panic!("shapes")
+        };
+        let dir = tempfile::tempdir().map_err(|e| e.to_string());
+        let Ok(dir) = dir else { panic!("tempdir") };
+        let path = dir.path().join("x.npz");
+        assert!(write_npz(&path, &[("kpts_i", &a), ("kpts_j", &b)]).is_ok());
+        let read = read_npz(&path).unwrap_or_default();
+        assert_eq!(read.get("kpts_i"), Some(&a));
+        assert_eq!(read.get("kpts_j"), Some(&b));
+        let once = npz_bytes(&[("kpts_i", &a)], "x").unwrap_or_default();
+        assert!(!once.is_empty());
+        assert_eq!(npz_bytes(&[("kpts_i", &a)], "x").unwrap_or_default(), once);
     }
 
     #[test]

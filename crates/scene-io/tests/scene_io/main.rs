@@ -1790,6 +1790,67 @@ fn keypoint_pairs_are_shifted_undistorted_and_match_pinhole_projections_on_fox_c
     assert!(err.to_string().contains("kpts_j"), "{err}");
 }
 
+/// `write_keypoint_pair` (what `prep matches` writes) gives the file the importer reads,
+/// numpy's `np.load` reads it as float32 (n, 2) arrays when python3 + numpy are there, and
+/// the same matches give the same bytes.
+#[test]
+fn written_keypoint_pairs_import_and_load_in_numpy() {
+    use scene_io::keypoints::{
+        import_keypoint_pairs, pair_file_name, write_keypoint_pair, KeypointOptions,
+    };
+    let cams = Cameras {
+        image_names: vec!["images/a_1.jpg".into(), "images/b.png".into()],
+        image_size: vec![[64u32, 48]; 2].into(),
+        intrinsics: vec![[50.0, 50.0, 32.0, 24.0]; 2].into(),
+        world_to_camera: vec![[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]; 2]
+            .into(),
+        distortion: None,
+        extra: Default::default(),
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let name = pair_file_name(&cams.image_names[0], &cams.image_names[1]);
+    assert_eq!(name, "a_1_b.npz");
+    let file = dir.path().join(&name);
+    let ki = [[1.0f32, 2.0], [10.25, 20.5], [63.0, 47.0]];
+    let kj = [[3.0f32, 4.0], [11.0, 21.0], [0.0, 0.0]];
+    write_keypoint_pair(&file, &ki, &kj).unwrap();
+    let bytes = std::fs::read(&file).unwrap();
+    write_keypoint_pair(&file, &ki, &kj).unwrap();
+    assert_eq!(std::fs::read(&file).unwrap(), bytes);
+    let (m, report) = import_keypoint_pairs(
+        std::slice::from_ref(&file),
+        &cams,
+        "cams",
+        &KeypointOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(report.pairs, 1);
+    assert_eq!(m.points_i.to_vec(), ki.map(|p| p.map(|x| x + 0.5)).to_vec());
+    assert_eq!(m.points_j.to_vec(), kj.map(|p| p.map(|x| x + 0.5)).to_vec());
+    let err = write_keypoint_pair(&dir.path().join("x_y.npz"), &ki, &kj[..1]).unwrap_err();
+    assert_eq!(err.code(), "invalid");
+    let py = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(
+            "import sys, numpy as np; d = np.load(sys.argv[1]); \
+             assert d['kpts_i'].dtype == np.float32 and d['kpts_i'].shape == (3, 2); \
+             assert d['kpts_j'][1].tolist() == [11.0, 21.0]; print('ok')",
+        )
+        .arg(&file)
+        .output();
+    match py {
+        Ok(o) if o.status.success() => assert_eq!(String::from_utf8_lossy(&o.stdout).trim(), "ok"),
+        Ok(o) if String::from_utf8_lossy(&o.stderr).contains("No module named") => {
+            eprintln!("SKIP: numpy not installed for python3")
+        }
+        Ok(o) => panic!(
+            "numpy cannot read the file: {}",
+            String::from_utf8_lossy(&o.stderr)
+        ),
+        Err(_) => eprintln!("SKIP: no python3"),
+    }
+}
+
 #[test]
 fn real_fox_xfeat_matches_import_with_every_pair() {
     use scene_io::keypoints::{import_keypoint_pairs, KeypointOptions};
