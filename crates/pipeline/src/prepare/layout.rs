@@ -60,8 +60,9 @@ pub fn photos_in(dir: &Path) -> Vec<PathBuf> {
     };
     let mut photos: Vec<PathBuf> = entries
         .filter_map(|e| e.ok())
-        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
         .map(|e| e.path())
+        // Follows symbolic links, as COLMAP's image listing does (profuse_sfm::list_images).
+        .filter(|p| p.is_file())
         .filter(|p| is_photo(p))
         .collect();
     photos.sort();

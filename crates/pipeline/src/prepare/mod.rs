@@ -24,9 +24,12 @@
 //! * **Bad input leaves nothing behind.** The layout, every photo's header (one size per
 //!   capture), every photo's full decode and the held-out names are checked before
 //!   anything is written; what can only be judged later (a held-out photo COLMAP did not
-//!   register, a splat whose renders disagree with the photos) removes a scene folder
-//!   that did not exist before. A failure while working (a model that does not load)
-//!   keeps the completed stages for the rerun to resume from.
+//!   register, [`PrepareError::HeldOutUnposed`]; a splat whose renders disagree with the
+//!   photos) removes a scene folder that did not exist before. A failure while working (a
+//!   model that does not load) keeps the completed stages for the rerun to resume from.
+//! * **A photo COLMAP cannot register is dropped, not fatal.** The scene is built from the
+//!   registered photos; the others are listed in the report's `dropped` with the reason
+//!   and in a note (printed on stderr by `profuse prepare`).
 
 mod geometry;
 pub mod layout;
@@ -71,6 +74,24 @@ pub enum PrepareError {
         option: &'static str,
         /// What is wrong.
         detail: String,
+    },
+    /// A held-out photo got no camera (COLMAP could not register it): the selection of a
+    /// click cannot be rendered into it, so it cannot be held out. Other photos COLMAP
+    /// cannot register are dropped with a warning instead.
+    #[error(
+        "{photo}: held out (--held-out {name}) but it has no pose: COLMAP could not register \
+         it ({posed} of {photos} photos registered), so no selection can be rendered into it; \
+         hold out another photo, or add photos that overlap this one"
+    )]
+    HeldOutUnposed {
+        /// The photo.
+        photo: String,
+        /// The held-out name as given.
+        name: String,
+        /// Photos with a camera.
+        posed: usize,
+        /// Photos of the capture.
+        photos: usize,
     },
     /// A given splat does not show the photographed scene.
     #[error("{path}: {detail}")]
@@ -344,8 +365,28 @@ fn prepare_checked(
         sfm_backend.as_ref(),
         &mut lines,
     )?;
-    let held_out = poses::held_out_views(&posed.cameras, &opts.held_out)?;
+    let held_out = poses::held_out_views(&posed, &opts.held_out)?;
     let mut notes = Vec::new();
+    if !posed.unregistered.is_empty() {
+        let names: Vec<String> = posed
+            .unregistered
+            .iter()
+            .map(|p| {
+                p.file_name().map_or_else(
+                    || p.display().to_string(),
+                    |n| n.to_string_lossy().into_owned(),
+                )
+            })
+            .collect();
+        notes.push(format!(
+            "{} of {} photos got no camera and are left out of the scene (prepare.json \
+             `dropped` says why): {}; the scene is built from the other {}",
+            names.len(),
+            names.len() + posed.cameras.len(),
+            names.join(", "),
+            posed.cameras.len()
+        ));
+    }
     geometry::geometry(
         &runner, opts, layout, &posed, &held_out, &mut lines, &mut notes,
     )?;

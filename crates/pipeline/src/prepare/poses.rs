@@ -24,7 +24,10 @@ pub(crate) struct Posed {
     pub source: Cameras,
     /// The COLMAP model the cameras came from (its tracks are the sparse matches).
     pub model: Option<PathBuf>,
-    /// Photos of the input without a camera, with the reason.
+    /// Photos of the input without a camera (COLMAP could not register them, or a
+    /// transforms.json frame without its file).
+    pub unregistered: Vec<PathBuf>,
+    /// The same photos, each with the reason (the report's `dropped`).
     pub dropped: Vec<String>,
 }
 
@@ -160,11 +163,20 @@ pub(crate) fn poses(
     lines.push(line);
     let cameras = Cameras::read(cameras_path(scene)).map_err(stage_err("poses"))?;
     let source = Cameras::read(source_cameras_path(scene)).map_err(stage_err("poses"))?;
-    let dropped = dropped_photos(photos, &source, &source_dir);
+    let unregistered = unregistered_photos(photos, &source, &source_dir);
+    let why = match layout {
+        Layout::Transforms { .. } => "no camera (the transforms.json frame was skipped)",
+        _ => "no camera (COLMAP could not register it; left out of the scene)",
+    };
+    let dropped = unregistered
+        .iter()
+        .map(|p| format!("{}: {why}", p.display()))
+        .collect();
     Ok(Posed {
         cameras,
         source,
         model,
+        unregistered,
         dropped,
     })
 }
@@ -192,7 +204,7 @@ fn source_cameras(layout: &Layout, model: Option<&Path>) -> Result<Cameras, Pipe
 }
 
 /// Photos of the input that no view names.
-fn dropped_photos(photos: &[PathBuf], source: &Cameras, source_dir: &Path) -> Vec<String> {
+fn unregistered_photos(photos: &[PathBuf], source: &Cameras, source_dir: &Path) -> Vec<PathBuf> {
     let named: std::collections::BTreeSet<PathBuf> = source
         .image_names
         .iter()
@@ -201,7 +213,7 @@ fn dropped_photos(photos: &[PathBuf], source: &Cameras, source_dir: &Path) -> Ve
     photos
         .iter()
         .filter(|p| !named.contains(*p))
-        .map(|p| format!("{}: no camera (COLMAP did not register it)", p.display()))
+        .cloned()
         .collect()
 }
 
@@ -229,11 +241,26 @@ pub(crate) fn check_held_out_names(photos: &[PathBuf], names: &[String]) -> Resu
 }
 
 /// The view indices of the held-out photos, named by file name or stem (of the original
-/// photo or of the scene's image); an unknown name is an error.
-pub(crate) fn held_out_views(cameras: &Cameras, names: &[String]) -> Result<Vec<usize>> {
+/// photo or of the scene's image); an unknown name is an error, and so is a held-out photo
+/// without a camera ([`PrepareError::HeldOutUnposed`]): a selection cannot be rendered into
+/// it.
+pub(crate) fn held_out_views(posed: &Posed, names: &[String]) -> Result<Vec<usize>> {
+    let cameras = &posed.cameras;
     let mut views = Vec::new();
     for name in names {
         let wanted = stem(name);
+        if let Some(photo) = posed
+            .unregistered
+            .iter()
+            .find(|p| stem(&p.to_string_lossy()) == wanted)
+        {
+            return Err(PrepareError::HeldOutUnposed {
+                photo: photo.display().to_string(),
+                name: name.clone(),
+                posed: cameras.len(),
+                photos: cameras.len() + posed.unregistered.len(),
+            });
+        }
         let v = cameras
             .image_names
             .iter()
@@ -241,8 +268,7 @@ pub(crate) fn held_out_views(cameras: &Cameras, names: &[String]) -> Result<Vec<
             .ok_or_else(|| PrepareError::Option {
                 option: "--held-out",
                 detail: format!(
-                    "{name:?} names no view of the scene ({} views; a photo COLMAP did not \
-                     register has none)",
+                    "{name:?} names no view of the scene ({} views)",
                     cameras.len()
                 ),
             })?;

@@ -315,3 +315,136 @@ fn a_splat_of_another_scene_is_refused_and_a_held_out_name_must_exist() {
     assert!(path.ends_with("guitar.ply"), "{e}");
     assert!(detail.contains("no photo agrees with its render"), "{e}");
 }
+
+/// The COLMAP backend prepare would use, or `None` (skip, with a message) unless
+/// PROFUSE_REQUIRE_COLMAP=1.
+fn colmap() -> Option<profuse_sfm::Backend> {
+    match profuse_sfm::find_backend(None) {
+        Ok(b) => Some(b),
+        Err(e) if std::env::var("PROFUSE_REQUIRE_COLMAP").as_deref() == Ok("1") => {
+            panic!("PROFUSE_REQUIRE_COLMAP=1 but: {e}")
+        }
+        Err(e) => {
+            eprintln!("SKIP: COLMAP run: {e}");
+            None
+        }
+    }
+}
+
+/// A folder of photos alone: the first nine fox photos (symbolic links) and one photo of the
+/// same size that COLMAP cannot register (uniform noise: SIFT finds features, none of
+/// which agree with the fox's). Prepare runs COLMAP, drops the noise photo with its reason
+/// in the report and a note, and builds the scene's cameras from the nine fox photos;
+/// holding the noise photo out is then a typed error naming it (it has no pose to render
+/// a selection into), and the scene stays as it was.
+#[test]
+fn a_photo_colmap_cannot_register_is_dropped_and_reported_not_fatal() {
+    let Some(fox) = fox() else { return };
+    let Some(_) = colmap() else { return };
+    let started = std::time::Instant::now();
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("photos");
+    std::fs::create_dir_all(&input).unwrap();
+    // The first nine photos of the capture (0001 to 0012: the shared folder has gaps).
+    let mut fox_names: Vec<String> = std::fs::read_dir(fox.join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".jpg"))
+        .collect();
+    fox_names.sort();
+    fox_names.truncate(9);
+    for name in &fox_names {
+        let src = fox.join("images").join(name).canonicalize().unwrap();
+        std::os::unix::fs::symlink(src, input.join(name)).unwrap();
+    }
+    let mut seed = 0x9e37_79b9_7f4a_7c15_u64;
+    let noise = image::RgbImage::from_fn(1080, 1920, |_, _| {
+        seed = seed
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        let b = seed.to_le_bytes();
+        image::Rgb([b[5], b[6], b[7]])
+    });
+    noise.save(input.join("0005_noise.jpg")).unwrap();
+
+    let scene = dir.path().join("scene");
+    let mut config = PrepareConfig::quick();
+    // COLMAP at 1,000 px and no refinement: the poses are what is checked here.
+    config.sfm.max_image_size = Some(1000);
+    config.gs_refine.iterations = 0;
+    let mut opts = PrepareOptions {
+        input: input.clone(),
+        scene: scene.clone(),
+        photos_only: true,
+        geometry_only: true,
+        threads: Some(2),
+        config,
+        ..Default::default()
+    };
+    let report = prepare(&opts, &|_| {}).unwrap_or_else(|e| {
+        panic!(
+            "prepare failed: {e}: {}",
+            std::error::Error::source(&e).map_or(String::new(), |s| s.to_string())
+        )
+    });
+    assert_eq!(report.layout.name(), "photos");
+    assert_eq!(report.dropped.len(), 1, "{:?}", report.dropped);
+    assert!(
+        report.dropped[0].contains("0005_noise.jpg") && report.dropped[0].contains("COLMAP"),
+        "{:?}",
+        report.dropped
+    );
+    assert!(
+        report
+            .notes
+            .iter()
+            .any(|n| n.contains("0005_noise.jpg") && n.contains("other 9")),
+        "{:?}",
+        report.notes
+    );
+    assert_eq!(report.views, 9);
+    let written: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scene.join("prepare.json")).unwrap()).unwrap();
+    assert!(
+        written["dropped"][0]
+            .as_str()
+            .is_some_and(|d| d.contains("0005_noise.jpg")),
+        "{written}"
+    );
+    // The original photos' cameras name the fox photos; the scene's cut images (PNG) are
+    // theirs, one for one.
+    let names = |file: &str| -> Vec<String> {
+        let c: profuse_formats::Cameras =
+            profuse_formats::FileKind::read(scene.join(file)).unwrap();
+        let mut n: Vec<String> = c
+            .image_names
+            .iter()
+            .map(|n| n.rsplit('/').next().unwrap_or(n).to_string())
+            .collect();
+        n.sort();
+        n
+    };
+    assert_eq!(names("source_cameras.safetensors"), fox_names);
+    let stems: Vec<String> = fox_names
+        .iter()
+        .map(|n| n.replace(".jpg", ".png"))
+        .collect();
+    assert_eq!(names("cameras.safetensors"), stems);
+    let seconds = started.elapsed().as_secs_f64();
+
+    // Held out, the unregistered photo is an error naming it (the sfm and poses stages are
+    // up to date: nothing reruns), and the scene stays.
+    opts.held_out = vec!["0005_noise".into()];
+    let e = prepare(&opts, &|_| {}).expect_err("a held-out photo without a pose");
+    let PrepareError::HeldOutUnposed { photo, posed, .. } = &e else {
+        panic!("{e}")
+    };
+    assert!(photo.ends_with("0005_noise.jpg") && *posed == 9, "{e}");
+    assert!(e.to_string().contains("COLMAP could not register"), "{e}");
+    assert!(scene.join("cameras.safetensors").is_file());
+    eprintln!(
+        "COLMAP on 9 fox photos + 1 noise photo, then poses, tracks, gs-init: {seconds:.1} s; \
+         the held-out check {:.1} s",
+        started.elapsed().as_secs_f64() - seconds
+    );
+}
