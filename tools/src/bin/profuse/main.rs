@@ -9,10 +9,10 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::Parser;
-use profuse_pipeline::cli;
 use profuse_experiments::demo::{self, DemoOptions};
 use profuse_experiments::record;
 use profuse_experiments::sweep::{self, SweepEvent, SweepOptions};
+use profuse_pipeline::cli;
 use profuse_pipeline::RunOptions;
 use profuse_tools::stages::StageBars;
 use profuse_tools::{chatty, print_result, run, BoxError};
