@@ -3,7 +3,9 @@
 //! `ort` is built with `load-dynamic`: nothing is downloaded or linked at build time; the
 //! library is opened at run time from, in order, an explicit path (`--ort-lib`), the
 //! `ORT_DYLIB_PATH` environment variable, or the `onnxruntime` Python package's `capi/`
-//! folder (asked from `python3`, a convenience for machines where the wheel is installed).
+//! folder (asked from `python3 -I`, a convenience for machines where the wheel is
+//! installed). A given path or variable that names no file is an error, not a reason to
+//! look elsewhere.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
@@ -20,40 +22,52 @@ static LOADING: Mutex<()> = Mutex::new(());
 /// Where the ONNX Runtime library is: `explicit`, else `ORT_DYLIB_PATH`, else the
 /// `onnxruntime` Python package's library. The error lists what was tried.
 pub fn find_library(explicit: Option<&Path>) -> Result<PathBuf> {
-    let mut tried = Vec::new();
+    // An explicit path is the user's choice: a wrong one is an error, never a silent
+    // fallback to another library.
     if let Some(p) = explicit {
         if p.is_file() {
             return Ok(p.to_path_buf());
         }
-        tried.push(format!("--ort-lib {} (no such file)", p.display()));
+        return Err(PrepError::RuntimeNotFound {
+            tried: format!("--ort-lib {} (no such file)", p.display()),
+        });
     }
+    let mut tried = Vec::new();
     match std::env::var_os("ORT_DYLIB_PATH") {
         Some(p) if Path::new(&p).is_file() => return Ok(PathBuf::from(p)),
-        Some(p) => tried.push(format!(
-            "ORT_DYLIB_PATH={} (no such file)",
-            Path::new(&p).display()
-        )),
+        Some(p) => {
+            return Err(PrepError::RuntimeNotFound {
+                tried: format!("ORT_DYLIB_PATH={} (no such file)", Path::new(&p).display()),
+            })
+        }
         None => tried.push("ORT_DYLIB_PATH (not set)".to_string()),
     }
     match python_library() {
         Some(p) => return Ok(p),
-        None => tried.push("python3 -c 'import onnxruntime' (no library found)".to_string()),
+        None => tried.push("python3 -I -c 'import onnxruntime' (no library found)".to_string()),
     }
     Err(PrepError::RuntimeNotFound {
         tried: tried.join("; "),
     })
 }
 
+/// The command that asks `python3` where the `onnxruntime` package is.
+fn python_probe() -> std::process::Command {
+    let mut cmd = std::process::Command::new("python3");
+    // -I (isolated): neither the current directory nor PYTHON* variables reach sys.path,
+    // so an `onnxruntime.py` planted in a scene folder is not imported and run.
+    cmd.args([
+        "-I",
+        "-c",
+        "import onnxruntime, os; print(os.path.join(os.path.dirname(onnxruntime.__file__), 'capi'))",
+    ])
+    .stderr(std::process::Stdio::null());
+    cmd
+}
+
 /// The `libonnxruntime.so*` inside the installed `onnxruntime` Python package, if any.
 fn python_library() -> Option<PathBuf> {
-    let out = std::process::Command::new("python3")
-        .args([
-            "-c",
-            "import onnxruntime, os; print(os.path.join(os.path.dirname(onnxruntime.__file__), 'capi'))",
-        ])
-        .stderr(std::process::Stdio::null())
-        .output()
-        .ok()?;
+    let out = python_probe().output().ok()?;
     if !out.status.success() {
         return None;
     }
@@ -146,4 +160,49 @@ pub fn require_io(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_given_library_path_that_names_no_file_is_an_error_not_a_fallback() {
+        let e = find_library(Some(Path::new("/nonexistent/libonnxruntime.so"))).unwrap_err();
+        let text = e.to_string();
+        assert!(text.contains("/nonexistent/libonnxruntime.so"), "{text}");
+        assert!(!text.contains("python3"), "no fallback was tried: {text}");
+    }
+
+    /// A scene folder with a planted `onnxruntime.py`: probing from there must not import
+    /// (and so run) it.
+    #[test]
+    fn the_python_probe_does_not_import_from_the_current_directory() {
+        if std::process::Command::new("python3")
+            .arg("-V")
+            .output()
+            .is_err()
+        {
+            eprintln!("SKIP: no python3");
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let marker = dir.path().join("ran");
+        std::fs::write(
+            dir.path().join("onnxruntime.py"),
+            format!("open({:?}, 'w').write('planted')\n__file__ = '/x'\n", marker),
+        )
+        .unwrap();
+        let _ = python_probe().current_dir(dir.path()).output().unwrap();
+        assert!(!marker.exists(), "the planted onnxruntime.py ran");
+        // The same command without -I does import it: the test can fail.
+        let _ = std::process::Command::new("python3")
+            .args(["-c", "import onnxruntime"])
+            .current_dir(dir.path())
+            .stderr(std::process::Stdio::null())
+            .output()
+            .unwrap();
+        assert!(marker.exists(), "the control run did not import the planted module");
+    }
 }
