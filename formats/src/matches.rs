@@ -157,6 +157,51 @@ impl SparseMatches {
     pub fn range(&self, p: usize) -> std::ops::Range<usize> {
         self.pair_offsets[p] as usize..self.pair_offsets[p + 1] as usize
     }
+
+    /// The matches of `self` and `other` (of the same views) in one file: each ordered pair
+    /// once, in the order pairs first appear (`self`'s, then `other`'s new ones), holding
+    /// `self`'s matches of that pair followed by `other`'s. `extra` is `self`'s. Two
+    /// matchers of one capture (COLMAP's tracks and XFeat) are combined this way.
+    ///
+    /// # Panics
+    /// When `num_views` differ (a caller's mistake, not an input's).
+    pub fn merged(&self, other: &SparseMatches) -> SparseMatches {
+        assert_eq!(
+            self.num_views, other.num_views,
+            "merging matches of different cameras"
+        );
+        let mut order: Vec<[u32; 2]> = Vec::new();
+        let mut parts: BTreeMap<[u32; 2], Vec<(&SparseMatches, usize)>> = BTreeMap::new();
+        for m in [self, other] {
+            for (p, pair) in m.pairs.iter().enumerate() {
+                let e = parts.entry(*pair).or_default();
+                if e.is_empty() {
+                    order.push(*pair);
+                }
+                e.push((m, p));
+            }
+        }
+        let mut offsets = vec![0u64];
+        let (mut pi, mut pj, mut cert) = (Vec::new(), Vec::new(), Vec::new());
+        for pair in &order {
+            for (m, p) in parts.get(pair).map(Vec::as_slice).unwrap_or_default() {
+                let r = m.range(*p);
+                pi.extend_from_slice(&m.points_i[r.clone()]);
+                pj.extend_from_slice(&m.points_j[r.clone()]);
+                cert.extend_from_slice(&m.certainty[r]);
+            }
+            offsets.push(pi.len() as u64);
+        }
+        SparseMatches {
+            num_views: self.num_views,
+            pairs: order.into(),
+            pair_offsets: offsets.into(),
+            points_i: pi.into(),
+            points_j: pj.into(),
+            certainty: cert.into(),
+            extra: self.extra.clone(),
+        }
+    }
 }
 
 impl FileKind for SparseMatches {

@@ -480,6 +480,50 @@ proptest! {
         round_trip(&m);
     }
 
+    /// `merged` against a brute force: for every ordered pair, the matches of both inputs
+    /// in input order; each pair once; a valid file.
+    #[test]
+    fn sparse_matches_merge_keeps_every_match_of_every_pair(
+        a in proptest::collection::vec((0u32..4, 0u32..4, 0u64..4), 0..6),
+        b in proptest::collection::vec((0u32..4, 0u32..4, 0u64..4), 0..6),
+    ) {
+        let build = |spec: &[(u32, u32, u64)], tag: f32| {
+            let mut seen = std::collections::BTreeSet::new();
+            let rows: Vec<(u32, u32, u64)> = spec.iter().copied().filter(|(i, j, _)| i != j && seen.insert((*i, *j))).collect();
+            let mut offsets = vec![0u64];
+            let (mut pi, mut pj) = (Vec::new(), Vec::new());
+            for (p, (_, _, c)) in rows.iter().enumerate() {
+                for k in 0..*c { pi.push([tag, p as f32]); pj.push([k as f32, tag]); }
+                offsets.push(pi.len() as u64);
+            }
+            let n = pi.len();
+            SparseMatches {
+                num_views: 4,
+                pairs: rows.iter().map(|(i, j, _)| [*i, *j]).collect::<Vec<_>>().into(),
+                pair_offsets: offsets.into(),
+                points_i: pi.into(),
+                points_j: pj.into(),
+                certainty: vec![tag / 2.0; n].into(),
+                extra: Default::default(),
+            }
+        };
+        let (x, y) = (build(&a, 1.0), build(&b, 2.0));
+        let m = x.merged(&y);
+        round_trip(&m);
+        let brute = |f: &SparseMatches, pair: [u32; 2]| -> Vec<([f32; 2], [f32; 2], f32)> {
+            f.pairs.iter().position(|p| *p == pair).map(|p| f.range(p).map(|k| (f.points_i[k], f.points_j[k], f.certainty[k])).collect()).unwrap_or_default()
+        };
+        let mut pairs: Vec<[u32; 2]> = x.pairs.iter().chain(y.pairs.iter()).copied().collect();
+        pairs.sort_unstable(); pairs.dedup();
+        prop_assert_eq!(m.pairs.len(), pairs.len());
+        for pair in pairs {
+            let mut want = brute(&x, pair);
+            want.extend(brute(&y, pair));
+            prop_assert_eq!(brute(&m, pair), want);
+        }
+        prop_assert_eq!(m.points_i.len(), x.points_i.len() + y.points_i.len());
+    }
+
     #[test]
     fn proposals_round_trip(assign in proptest::collection::vec(0u32..6, 0..30)) {
         // Value 5 means "none"; proposals are the distinct ids used, renumbered densely.
