@@ -40,7 +40,7 @@ pub mod pairs;
 pub mod resize;
 
 pub use mnn::mutual_nearest;
-pub use pairs::{neighbour_pairs, ANGLE_WEIGHT};
+pub use pairs::{neighbour_pairs, resolve_views, ANGLE_WEIGHT};
 pub use resize::Planar;
 
 /// The package's default and the fox's setting: keypoints kept per image (both scales).

@@ -1136,3 +1136,68 @@ fn xfeat_neighbour_pairs_reproduce_the_fox_pairs() {
         .iter()
         .all(|(i, j)| !held.contains(i) && !held.contains(j)));
 }
+
+/// `match_pairs` (what `prep matches` runs) on three fox views: each view's features once,
+/// pairs in order, the photos checked against their cameras' sizes, and typed errors for a
+/// view the cameras lack and a photo of the wrong size.
+#[test]
+fn xfeat_match_pairs_on_three_fox_views() {
+    use profuse_prep::xfeat::{match_pairs, neighbour_pairs, XFeat};
+    use profuse_prep::PrepError;
+    let (Some(env), Some(transforms)) = (runtime(), shared("fox/transforms.json")) else {
+        return;
+    };
+    let (cameras, _) = scene_io::read_transforms(&transforms).unwrap();
+    let root = transforms.parent().unwrap();
+    let exclude: Vec<usize> = (3..cameras.len()).collect();
+    let pairs = neighbour_pairs(&cameras, 3, &exclude);
+    assert_eq!(pairs, vec![(0, 1), (0, 2), (1, 2)]);
+    let mut xfeat = XFeat::open_in(env, None, 2).unwrap();
+    let mut got = Vec::new();
+    let report = match_pairs::<PrepError>(
+        &mut xfeat,
+        &cameras,
+        root,
+        &pairs,
+        2000,
+        &|_, _| {},
+        &mut |i, j, m| {
+            got.push((i, j, m.len()));
+            Ok(())
+        },
+    )
+    .unwrap();
+    assert_eq!(report.pairs, 3);
+    assert_eq!(report.images, 3);
+    assert_eq!(got.iter().map(|g| (g.0, g.1)).collect::<Vec<_>>(), pairs);
+    assert_eq!(report.matches, got.iter().map(|g| g.2).sum::<usize>());
+    assert!(got.iter().all(|g| g.2 > 300), "{got:?}");
+    let bad = match_pairs::<PrepError>(
+        &mut xfeat,
+        &cameras,
+        root,
+        &[(0, 99)],
+        2000,
+        &|_, _| {},
+        &mut |_, _, _| Ok(()),
+    );
+    assert!(matches!(bad, Err(PrepError::Input { .. })), "{bad:?}");
+    let mut small = cameras.clone();
+    small.image_size = vec![[540u32, 960]; cameras.len()].into();
+    let bad = match_pairs::<PrepError>(
+        &mut xfeat,
+        &small,
+        root,
+        &[(0, 1)],
+        2000,
+        &|_, _| {},
+        &mut |_, _, _| Ok(()),
+    );
+    let Err(PrepError::Image { message, .. }) = bad else {
+        panic!("{bad:?}")
+    };
+    assert!(
+        message.contains("1080x1920") && message.contains("540x960"),
+        "{message}"
+    );
+}

@@ -17,7 +17,11 @@
 //! taking part; a pair is kept once, as `(min, max)`, and the list is sorted. Excluded
 //! views (held out) are neither matched nor candidates.
 
+use std::path::Path;
+
 use profuse_formats::Cameras;
+
+use crate::error::{input, Result};
 
 /// Weight of the viewing-angle term, in median nearest-camera distances.
 pub const ANGLE_WEIGHT: f64 = 30.0;
@@ -79,6 +83,41 @@ pub fn neighbour_pairs(cameras: &Cameras, k: usize, exclude: &[usize]) -> Vec<(u
     pairs.into_iter().collect()
 }
 
+/// The views named by `items`: each an image name or file stem of `cameras` (tried
+/// first, since stems are often numbers: the fox's `0018` is view 10), else a view index.
+pub fn resolve_views(cameras: &Cameras, items: &[String]) -> Result<Vec<usize>> {
+    let stem = |n: &str| {
+        Path::new(n)
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    let mut views = Vec::new();
+    for item in items.iter().map(|s| s.trim()).filter(|s| !s.is_empty()) {
+        let by_name = cameras
+            .image_names
+            .iter()
+            .position(|n| n == item || stem(n) == item || stem(n) == stem(item));
+        let v = match (by_name, item.parse::<usize>()) {
+            (Some(v), _) => v,
+            (None, Ok(v)) if v < cameras.len() => v,
+            _ => {
+                return Err(input(
+                    format!("view {item:?}"),
+                    format!(
+                        "names no image of the cameras (by name or stem) and is not a view index below {}",
+                        cameras.len()
+                    ),
+                ))
+            }
+        };
+        if !views.contains(&v) {
+            views.push(v);
+        }
+    }
+    Ok(views)
+}
+
 /// The median (mean of the two middle values for an even count, as numpy), or `None`.
 fn median(values: &mut [f64]) -> Option<f64> {
     values.sort_by(f64::total_cmp);
@@ -135,5 +174,16 @@ mod tests {
             .all(|&(i, j)| ![1, 4].contains(&i) && ![1, 4].contains(&j)));
         assert_eq!(p, vec![(0, 2), (0, 3), (0, 5), (2, 3), (2, 5)]);
         assert!(neighbour_pairs(&cams, 0, &[]).is_empty());
+    }
+
+    #[test]
+    fn views_by_name_stem_or_index() {
+        let cams = line(&[0.0, 1.0, 2.0]);
+        let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        // "0002" is the stem of view 2; "1" is no stem, so view index 1.
+        let got = resolve_views(&cams, &names(&["0002", "0000.jpg", "1", "0002"]));
+        assert_eq!(got.ok(), Some(vec![2, 0, 1]));
+        assert!(resolve_views(&cams, &names(&["7"])).is_err());
+        assert!(resolve_views(&cams, &names(&["fox"])).is_err());
     }
 }

