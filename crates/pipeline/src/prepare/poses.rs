@@ -22,6 +22,8 @@ pub(crate) struct Posed {
     /// The original photos' cameras, with their lens (`SCENE/source_cameras.safetensors`),
     /// image names relative to the capture's photo folder.
     pub source: Cameras,
+    /// That photo folder.
+    pub source_dir: PathBuf,
     /// The COLMAP model the cameras came from (its tracks are the sparse matches).
     pub model: Option<PathBuf>,
     /// Photos of the input without a camera (COLMAP could not register them, or a
@@ -175,6 +177,7 @@ pub(crate) fn poses(
     Ok(Posed {
         cameras,
         source,
+        source_dir,
         model,
         unregistered,
         dropped,

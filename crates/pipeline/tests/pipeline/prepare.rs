@@ -261,11 +261,15 @@ fn missing_segmenter_and_unknown_held_out_photos_are_option_errors() {
 /// A capture of 6 fox photos (a transforms.json listing only them), for the checks that
 /// need real poses and photos but not the whole capture.
 fn small_fox(fox: &Path, dir: &Path) -> PathBuf {
-    let input = dir.join("fox6");
+    fox_subset(fox, dir, &["0001", "0018", "0030", "0044", "0054", "0089"])
+}
+
+/// A capture of the fox photos `keep` (a transforms.json listing only them).
+fn fox_subset(fox: &Path, dir: &Path, keep: &[&str]) -> PathBuf {
+    let input = dir.join(format!("fox{}", keep.len()));
     std::fs::create_dir_all(input.join("images")).unwrap();
     let mut json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(fox.join("transforms.json")).unwrap()).unwrap();
-    let keep = ["0001", "0018", "0030", "0044", "0054", "0089"];
     let frames: Vec<serde_json::Value> = json["frames"]
         .as_array()
         .unwrap()
@@ -372,6 +376,7 @@ fn a_photo_colmap_cannot_register_is_dropped_and_reported_not_fatal() {
     // COLMAP at 1,000 px and no refinement: the poses are what is checked here.
     config.sfm.max_image_size = Some(1000);
     config.gs_refine.iterations = 0;
+    config.matcher.xfeat = false;
     let mut opts = PrepareOptions {
         input: input.clone(),
         scene: scene.clone(),
@@ -447,4 +452,166 @@ fn a_photo_colmap_cannot_register_is_dropped_and_reported_not_fatal() {
          the held-out check {:.1} s",
         started.elapsed().as_secs_f64() - seconds
     );
+}
+
+/// A transforms.json capture without keypoints: prepare matches the photos itself with
+/// XFeat (each with its nearest cameras), never touching the held-out photo, writes the
+/// pair files it imported under .prepare/xfeat/, and gs-init triangulates from them. The
+/// matches are checked against the capture's own poses: most lie on their epipolar line
+/// in the cut photos (the undistortion and the cut applied on import).
+#[test]
+fn a_transforms_capture_without_keypoints_is_matched_by_xfeat_here() {
+    let Some(fox) = fox() else { return };
+    if !ort_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // Six neighbouring photos of the capture, one held out.
+    let input = fox_subset(
+        &fox,
+        dir.path(),
+        &["0001", "0002", "0003", "0004", "0006", "0007"],
+    );
+    let scene = dir.path().join("scene");
+    let mut config = PrepareConfig::quick();
+    config.gs_refine.iterations = 0;
+    config.matcher.neighbours = 2;
+    config.matcher.top_k = 4000;
+    let opts = PrepareOptions {
+        input,
+        scene: scene.clone(),
+        geometry_only: true,
+        held_out: vec!["0003".into()],
+        threads: Some(2),
+        config,
+        ..Default::default()
+    };
+    let report = prepare(&opts, &|_| {}).unwrap_or_else(|e| {
+        panic!(
+            "prepare failed: {e}: {}",
+            std::error::Error::source(&e).map_or(String::new(), |s| s.to_string())
+        )
+    });
+    let line = report
+        .stages
+        .iter()
+        .find(|l| l.stage == "correspondences")
+        .unwrap();
+    let r = &line.report;
+    assert_eq!(r["sources"], serde_json::json!(["xfeat"]), "{r}");
+    let cameras: profuse_formats::Cameras =
+        profuse_formats::FileKind::read(scene.join("cameras.safetensors")).unwrap();
+    let held = cameras
+        .image_names
+        .iter()
+        .position(|n| n.contains("0003"))
+        .unwrap() as u32;
+    let m: profuse_formats::SparseMatches =
+        profuse_formats::FileKind::read(scene.join("sparse_matches.safetensors")).unwrap();
+    assert!(m.pairs.len() >= 5, "{} pairs", m.pairs.len());
+    assert!(m.pairs.iter().all(|p| !p.contains(&held)), "{:?}", m.pairs);
+    assert!(m.points_i.len() > 1000, "{} matches", m.points_i.len());
+    let files = std::fs::read_dir(scene.join(".prepare/xfeat"))
+        .unwrap()
+        .count();
+    assert_eq!(files, m.pairs.len());
+    // Epipolar check with the scene's (cut, pinhole) cameras.
+    let mut good = 0usize;
+    for (p, [i, j]) in m.pairs.iter().enumerate() {
+        let f = fundamental(&cameras, *i as usize, *j as usize);
+        for k in m.range(p) {
+            if epipolar_distance(&f, m.points_i[k], m.points_j[k]) < 2.0 {
+                good += 1;
+            }
+        }
+    }
+    let share = good as f64 / m.points_i.len() as f64;
+    assert!(
+        share > 0.7,
+        "{share:.3} of the XFeat matches within 2 px of their epipolar line"
+    );
+    let gs = report.stages.iter().find(|l| l.stage == "gs-init").unwrap();
+    assert!(
+        gs.report["kept"].as_u64().unwrap_or(0) > 1000,
+        "{}",
+        gs.report
+    );
+    eprintln!(
+        "XFeat on the 6-photo fox: {} pairs, {} matches, {:.1}% within 2 px of the epipolar \
+         line, {:.1} s",
+        m.pairs.len(),
+        m.points_i.len(),
+        100.0 * share,
+        line.seconds
+    );
+}
+
+/// Whether ONNX Runtime can be found (the XFeat test needs it); a skip message otherwise,
+/// a failure when PROFUSE_REQUIRE_PYTHON=1 (CI installs it).
+fn ort_available() -> bool {
+    match profuse_prep::runtime::find_library(None) {
+        Ok(_) => true,
+        Err(e) if std::env::var("PROFUSE_REQUIRE_PYTHON").as_deref() == Ok("1") => {
+            panic!("PROFUSE_REQUIRE_PYTHON=1 but: {e}")
+        }
+        Err(e) => {
+            eprintln!("SKIP: XFeat needs ONNX Runtime: {e}");
+            false
+        }
+    }
+}
+
+/// F with x_j^T F x_i = 0 for pixel coordinates of the pinhole views i and j.
+fn fundamental(c: &profuse_formats::Cameras, i: usize, j: usize) -> [[f64; 3]; 3] {
+    let k_inv = |v: usize| {
+        let [fx, fy, cx, cy] = c.intrinsics[v];
+        [
+            [1.0 / fx, 0.0, -cx / fx],
+            [0.0, 1.0 / fy, -cy / fy],
+            [0.0, 0.0, 1.0],
+        ]
+    };
+    let mul = |a: [[f64; 3]; 3], b: [[f64; 3]; 3]| {
+        let mut o = [[0.0; 3]; 3];
+        for r in 0..3 {
+            for col in 0..3 {
+                o[r][col] = (0..3).map(|k| a[r][k] * b[k][col]).sum();
+            }
+        }
+        o
+    };
+    let t = |a: [[f64; 3]; 3]| {
+        let mut o = [[0.0; 3]; 3];
+        for r in 0..3 {
+            for col in 0..3 {
+                o[r][col] = a[col][r];
+            }
+        }
+        o
+    };
+    let (ri, ti) = c.pose(i);
+    let (rj, tj) = c.pose(j);
+    // x_j = R x_i + t with R = Rj Ri^T, t = tj - R ti.
+    let r = mul(rj, t(ri));
+    let tv: Vec<f64> = (0..3)
+        .map(|a| tj[a] - (0..3).map(|b| r[a][b] * ti[b]).sum::<f64>())
+        .collect();
+    let tx = [
+        [0.0, -tv[2], tv[1]],
+        [tv[2], 0.0, -tv[0]],
+        [-tv[1], tv[0], 0.0],
+    ];
+    let e = mul(tx, r);
+    mul(mul(t(k_inv(j)), e), k_inv(i))
+}
+
+/// Distance of x_j from the epipolar line F x_i, in pixels.
+fn epipolar_distance(f: &[[f64; 3]; 3], a: [f32; 2], b: [f32; 2]) -> f64 {
+    let x = [f64::from(a[0]), f64::from(a[1]), 1.0];
+    let l: Vec<f64> = (0..3)
+        .map(|r| (0..3).map(|k| f[r][k] * x[k]).sum())
+        .collect();
+    let y = [f64::from(b[0]), f64::from(b[1]), 1.0];
+    let num: f64 = (0..3).map(|k| l[k] * y[k]).sum();
+    num.abs() / (l[0] * l[0] + l[1] * l[1]).sqrt().max(1e-12)
 }

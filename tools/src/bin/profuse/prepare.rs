@@ -27,7 +27,10 @@ pub struct PrepareArgs {
     #[arg(long)]
     pub photos_only: bool,
     /// Keypoint pairs (<stem_i>_<stem_j>.npz from XFeat, LightGlue or LoFTR, keys kpts_i
-    /// and kpts_j) as the correspondences of a transforms.json capture.
+    /// and kpts_j, pixel centres at integers) instead of the XFeat matching prepare runs
+    /// itself (each photo with its 3 nearest cameras; `--set matcher.xfeat=false` turns it
+    /// off, `matcher.neighbours` and `matcher.top_k` tune it). COLMAP's tracks are added
+    /// whenever the capture has a COLMAP model.
     #[arg(long, value_name = "DIR")]
     pub keypoints: Option<PathBuf>,
     /// SAM ONNX export: a folder with encoder.onnx and decoder.onnx (or sam.onnx).
