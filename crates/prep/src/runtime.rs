@@ -191,7 +191,10 @@ mod tests {
         let marker = dir.path().join("ran");
         std::fs::write(
             dir.path().join("onnxruntime.py"),
-            format!("open({:?}, 'w').write('planted')\n__file__ = '/x'\n", marker),
+            format!(
+                "open({:?}, 'w').write('planted')\n__file__ = '/x'\n",
+                marker
+            ),
         )
         .unwrap();
         let _ = python_probe().current_dir(dir.path()).output().unwrap();
@@ -203,6 +206,9 @@ mod tests {
             .stderr(std::process::Stdio::null())
             .output()
             .unwrap();
-        assert!(marker.exists(), "the control run did not import the planted module");
+        assert!(
+            marker.exists(),
+            "the control run did not import the planted module"
+        );
     }
 }
