@@ -8,13 +8,13 @@ use clap::{Args, Parser, Subcommand};
 #[command(
     name = "prep",
     version,
-    about = "Masks, mask features and prompts from real SAM / CLIP ONNX models; dense warps from geometry",
+    about = "Masks, mask features and prompts from real SAM / CLIP ONNX models; XFeat keypoint matches; dense warps from geometry",
     long_about = "Makes the files the semantic half reads from a user's photos: `masks` runs SAM's \
                   automatic mask generator on every view and writes non-overlapping label maps \
                   (with SAM-embedding mask descriptors), `features` replaces the descriptors \
                   (SAM embedding or CLIP image crops), `prompts` embeds texts with a CLIP text \
                   encoder, `warps` makes dense warps from the Gaussians' rendered depth (no \
-                  model). Models run through ONNX Runtime, loaded from --ort-lib, \
+                  model), `matches` XFeat* keypoint pairs between neighbouring photos. Models run through ONNX Runtime, loaded from --ort-lib, \
                   ORT_DYLIB_PATH or the onnxruntime Python package. Prints one JSON report."
 )]
 pub struct Cli {
