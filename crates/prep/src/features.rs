@@ -10,7 +10,6 @@ use serde::Serialize;
 
 use crate::clip::{image_input, ClipModel};
 use crate::error::{input, Result};
-use crate::image::load_rgb;
 use crate::pool::pool_embedding;
 use crate::sam::{secs, Sam};
 
@@ -84,7 +83,7 @@ pub fn sam_features(
         .collect();
     let mut feats = Vec::with_capacity(masks.num_masks() * crate::sam::EMBED_DIM);
     for (k, &v) in views.iter().enumerate() {
-        let img = load_rgb(&images.join(&cameras.image_names[v]))?;
+        let img = crate::image::load_view_image(images, cameras, v)?;
         let emb = sam.encode(&img)?;
         let labels = view_labels(masks, v);
         feats.extend(pool_embedding(
@@ -123,7 +122,7 @@ pub fn clip_features(
     let mut feats = Vec::new();
     let mut dim = 0;
     for (k, &v) in views.iter().enumerate() {
-        let img = load_rgb(&images.join(&cameras.image_names[v]))?;
+        let img = crate::image::load_view_image(images, cameras, v)?;
         let labels = view_labels(masks, v);
         let (gw, gh) = (masks.width, masks.height);
         let cell_x: Vec<usize> = (0..img.width)

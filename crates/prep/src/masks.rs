@@ -12,7 +12,7 @@ use serde::Serialize;
 
 use crate::amg::{generate, label_map, AmgCounts, AmgParams};
 use crate::error::{input, Result};
-use crate::image::{load_rgb, RgbImage};
+use crate::image::RgbImage;
 use crate::pool::pool_embedding;
 use crate::sam::{secs, Sam, EMBED_DIM};
 
@@ -208,18 +208,7 @@ pub fn segment_view(
 
 /// Reads view `v`'s image (relative to the job's image directory).
 pub fn load_view(job: &MasksJob<'_>, v: usize) -> Result<RgbImage> {
-    let img = load_rgb(&job.images.join(&job.cameras.image_names[v]))?;
-    let [w, h] = job.cameras.image_size[v];
-    if (img.width, img.height) != (w as usize, h as usize) {
-        return Err(input(
-            format!("image {}", job.cameras.image_names[v]),
-            format!(
-                "is {}x{} but the cameras file says {w}x{h}",
-                img.width, img.height
-            ),
-        ));
-    }
-    Ok(img)
+    crate::image::load_view_image(job.images, job.cameras, v)
 }
 
 /// Which views are selected, checked against the view count.

@@ -32,7 +32,7 @@ use ort::value::TensorRef;
 use serde::Serialize;
 
 use crate::error::{input, PrepError, Result};
-use crate::image::{load_rgb, RgbImage};
+use crate::image::RgbImage;
 use crate::runtime::{environment, find_library, open_session, require_io, Environment};
 
 pub mod mnn;
@@ -455,21 +455,7 @@ pub fn match_pairs<E: From<PrepError>>(
 /// The photo of view `v`, checked against the camera's size (the matches are written in
 /// the camera's pixels).
 fn view_image(cameras: &profuse_formats::Cameras, images: &Path, v: usize) -> Result<RgbImage> {
-    let path = images.join(&cameras.image_names[v]);
-    let img = load_rgb(&path)?;
-    let [w, h] = cameras.image_size[v];
-    if (img.width, img.height) != (w as usize, h as usize) {
-        return Err(PrepError::Image {
-            path,
-            message: format!(
-                "the photo is {}x{}, but its camera (view {v}) is {w}x{h}: give the photos the \
-                 cameras were made for (for a prepared scene, source_cameras.safetensors with \
-                 the original photos)",
-                img.width, img.height
-            ),
-        });
-    }
-    Ok(img)
+    crate::image::load_view_image(images, cameras, v)
 }
 
 #[cfg(test)]
