@@ -8,6 +8,8 @@
     reference.py pool EMBEDDING.f32 W H LABELS.u16 GH GW MASKS OUT.f32
         The mask descriptors: mask-pixel-count-weighted mean of the 64x64x256 embedding
         over each mask, L2-normalised.
+    reference.py nan-encoder OUT.onnx
+        A broken SAM-encoder stand-in: input [1,3,1024,1024] -> a [1,256,64,64] output of NaN.
     reference.py tiny-clip OUTDIR
         Tiny ONNX models with the interface of the Hugging Face CLIP exports
         (pixel_values [N,3,224,224] -> image_embeds [N,8]; input_ids, attention_mask
@@ -155,5 +157,21 @@ def tiny_clip(args):
             os.path.join(outdir, "text_out.f32"))
 
 
+def nan_encoder(args):
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    shape = numpy_helper.from_array(np.array([1, 256, 64, 64], np.int64), "shape")
+    g = helper.make_graph(
+        [helper.make_node("ConstantOfShape", ["shape"], ["embedding"],
+                          value=helper.make_tensor("v", TensorProto.FLOAT, [1], [float("nan")]))],
+        "nan_encoder",
+        [helper.make_tensor_value_info("input", TensorProto.FLOAT, [1, 3, 1024, 1024])],
+        [helper.make_tensor_value_info("embedding", TensorProto.FLOAT, [1, 256, 64, 64])],
+        [shape])
+    onnx.save(helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)]), args[0])
+
+
 if __name__ == "__main__":
-    {"sam": sam, "pool": pool, "tiny-clip": tiny_clip}[sys.argv[1]](sys.argv[2:])
+    {"sam": sam, "pool": pool, "tiny-clip": tiny_clip, "nan-encoder": nan_encoder}[sys.argv[1]](
+        sys.argv[2:])

@@ -158,6 +158,17 @@ impl Sam {
                 message: format!("encoder output has shape {shape:?}, expected {want:?}"),
             });
         }
+        // A broken export (or weights) that yields NaN would otherwise make every mask fail
+        // the filters silently: an empty masks file and exit 0.
+        if let Some(i) = data.iter().position(|x| !x.is_finite()) {
+            return Err(PrepError::ModelInterface {
+                model,
+                message: format!(
+                    "the encoder's output is not finite (value {} at index {i})",
+                    data[i]
+                ),
+            });
+        }
         Ok(Embedding {
             data: data.to_vec(),
             image_width: img.width,
@@ -294,6 +305,12 @@ pub fn decode_one(
         .try_extract_tensor::<f32>()
         .map_err(|e| fail("`iou_predictions` is not a float tensor", e))?;
     let iou = iou.first().copied().unwrap_or(0.0);
+    if !iou.is_finite() || masks.iter().any(|x| !x.is_finite()) {
+        return Err(PrepError::ModelInterface {
+            model: model.to_path_buf(),
+            message: "the decoder's mask logits or predicted IoU are not finite".to_string(),
+        });
+    }
     Ok((masks.to_vec(), iou))
 }
 

@@ -1198,7 +1198,30 @@ fn xfeat_match_pairs_on_three_fox_views() {
     };
     // Both sizes are named, whatever the wording.
     assert!(
-        ["1080", "1920", "540", "960"].iter().all(|n| message.contains(n)),
+        ["1080", "1920", "540", "960"]
+            .iter()
+            .all(|n| message.contains(n)),
         "{message}"
+    );
+}
+
+/// A SAM encoder whose output is NaN (a broken export) is an error naming the model, not an
+/// empty masks file and exit 0.
+#[test]
+fn an_encoder_that_outputs_nan_is_an_error() {
+    let Some(env) = runtime() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("nan_encoder.onnx");
+    python(&["nan-encoder", model.to_str().unwrap()]);
+    let mut sam = Sam::open_encoder(env, &model, 1).unwrap();
+    let img = RgbImage {
+        width: 64,
+        height: 48,
+        pixels: vec![128; 64 * 48 * 3],
+    };
+    let e = sam.encode(&img).unwrap_err().to_string();
+    assert!(
+        e.contains("nan_encoder.onnx") && e.contains("not finite"),
+        "{e}"
     );
 }
