@@ -451,15 +451,7 @@ pub(super) fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
 ) {
     let n = V::N;
     let zero = V::splat(0.0);
-    let mut s = UnitState::<V> {
-        t: V::splat(1.0),
-        r: zero,
-        g: zero,
-        b: zero,
-        depth: zero,
-        wsum: zero,
-        done: !valid,
-    };
+    let mut s = UnitState::<V>::new(valid);
     let all = V::bits(V::span(0, n - 1));
     let k = out.k;
     let lists = unit * n * k..(unit + 1) * n * k;
@@ -471,8 +463,10 @@ pub(super) fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     // earlier tile's entries, which `insert_group` and `write_lists` never read.
     let mut kth = zero;
     let mut fill = 0usize;
-    let px = V::splat(px0 as f32) + V::unit_columns();
-    let py = V::splat(py0 as f32) + V::unit_rows();
+    let pixel = [
+        V::splat(px0 as f32) + V::unit_columns(),
+        V::splat(py0 as f32) + V::unit_rows(),
+    ];
     // Entries go in batches: first every α of the batch (long chains of exp, independent of
     // the unit's state, so they overlap), then the compositing in depth order (short
     // chains through T). One entry at a time, the out-of-order window held only about two
@@ -481,25 +475,9 @@ pub(super) fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
     let mut reach = [V::from_bits(0); BATCH];
     let mut pending = [UnitEntry { at: 0, lanes: 0 }; BATCH];
     'walk: loop {
-        let mut len = 0;
-        for slot in &mut pending {
-            let Some(e) = entries.next() else {
-                break;
-            };
-            *slot = e;
-            len += 1;
-        }
+        let len = next_batch(&mut entries, &mut pending);
         let batch = &pending[..len];
-        for ((e, a), m) in batch.iter().zip(&mut alpha).zip(&mut reach) {
-            let lanes = V::from_bits(e.lanes) & !s.done;
-            *m = lanes;
-            if V::bits(lanes) == 0 {
-                continue;
-            }
-            if let Some(sp) = splat_at(splats, list, e.at) {
-                (*a, *m) = footprint_alpha::<V>(sp, lanes, px, py);
-            }
-        }
+        batch_alpha::<V>(batch, splats, list, s.done, pixel, &mut alpha, &mut reach);
         for ((e, &a), &m) in batch.iter().zip(&alpha).zip(&reach) {
             // Lanes in the footprint, with α >= 1/255, not stopped.
             let ok = m & !s.done;
@@ -539,21 +517,13 @@ pub(super) fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
                     {
                         out.counts.inserted += u64::from(V::bits(cand).count_ones());
                     }
-                    let payload = match out.ids {
-                        Some(ids) => ids.get(e.at as usize).copied().unwrap_or(NO_GAUSSIAN),
-                        None => e.at,
-                    };
-                    let id = V::splat(f32::from_bits(payload));
+                    let id = V::splat(f32::from_bits(list_payload(out.ids, e.at)));
                     kth = insert_group::<V>(lw, lid, k, fill, cand, w, id);
                     // One more entry in each candidate lane (or one replaced when full).
                     fill = (fill + 1).min(k);
                 }
                 if CUTOFF {
-                    // A later contributor weighs ω = T·α < T (α <= 0.99, T never grows), so
-                    // once T <= the K-th weight of a full list (> 0) nothing can enter: the
-                    // pixel's list is final and it stops here.
-                    let full = kth.gt(zero);
-                    s.done = s.done | (full & s.t.le(kth));
+                    s.stop_final_lists(kth);
                 }
             }
             if V::bits(s.done) == all {
@@ -564,17 +534,109 @@ pub(super) fn blend_unit<V: Lanes, const TOPK: bool, const CUTOFF: bool>(
             break;
         }
     }
-    if let Some(f) = out.fill.get_mut(unit) {
-        // At most K <= MAX_TOP_K: fits.
-        *f = fill as u16;
+    s.store::<CUTOFF>(out, [unit, at], fill);
+}
+
+impl<V: Lanes> UnitState<V> {
+    /// The state before any splat: T = 1, zero sums; the lanes outside `valid` (the
+    /// image) are stopped.
+    #[inline(always)]
+    pub(super) fn new(valid: V::Mask) -> Self {
+        let zero = V::splat(0.0);
+        UnitState {
+            t: V::splat(1.0),
+            r: zero,
+            g: zero,
+            b: zero,
+            depth: zero,
+            wsum: zero,
+            done: !valid,
+        }
     }
-    store_unit(s.t, out.t, at);
-    if !CUTOFF {
-        store_unit(s.r, out.r, at);
-        store_unit(s.g, out.g, at);
-        store_unit(s.b, out.b, at);
-        store_unit(s.depth, out.depth, at);
-        store_unit(s.wsum, out.wsum, at);
+
+    /// Stops the lanes whose top-K list is final (lists-only renders): a later contributor
+    /// weighs ω = T·α < T (α <= 0.99, T never grows), so once T <= the K-th weight `kth`
+    /// of a full list (> 0) nothing can enter: the pixel's list is final and it stops here.
+    #[inline(always)]
+    pub(super) fn stop_final_lists(&mut self, kth: V) {
+        let full = kth.gt(V::splat(0.0));
+        self.done = self.done | (full & self.t.le(kth));
+    }
+
+    /// Writes the unit's results into `out`: its lists' fill (the longest list's length)
+    /// for unit `unit`, then T and, unless `CUTOFF` (lists only), the sums from tile pixel
+    /// `at`.
+    #[inline(always)]
+    pub(super) fn store<const CUTOFF: bool>(
+        &self,
+        out: &mut UnitOut<'_>,
+        [unit, at]: [usize; 2],
+        fill: usize,
+    ) {
+        if let Some(f) = out.fill.get_mut(unit) {
+            // At most K <= MAX_TOP_K: fits.
+            *f = fill as u16;
+        }
+        store_unit(self.t, out.t, at);
+        if !CUTOFF {
+            store_unit(self.r, out.r, at);
+            store_unit(self.g, out.g, at);
+            store_unit(self.b, out.b, at);
+            store_unit(self.depth, out.depth, at);
+            store_unit(self.wsum, out.wsum, at);
+        }
+    }
+}
+
+/// Takes the next [`BATCH`] entries (fewer at the end) into `pending`; returns how many.
+#[inline(always)]
+pub(super) fn next_batch(
+    entries: &mut impl Iterator<Item = UnitEntry>,
+    pending: &mut [UnitEntry; BATCH],
+) -> usize {
+    let mut len = 0;
+    for slot in pending {
+        let Some(e) = entries.next() else {
+            break;
+        };
+        *slot = e;
+        len += 1;
+    }
+    len
+}
+
+/// The first half of a batch of [`blend_unit`]: every entry's α over the unit's lanes
+/// (`alpha`) and the lanes it reaches with α >= 1/255 (`reach`), for the lanes of its
+/// footprint that are not `done`; an entry reaching no such lane reaches none.
+#[inline(always)]
+pub(super) fn batch_alpha<V: Lanes>(
+    batch: &[UnitEntry],
+    splats: &[Splat],
+    list: &[RowEntry],
+    done: V::Mask,
+    [px, py]: [V; 2],
+    alpha: &mut [V; BATCH],
+    reach: &mut [V::Mask; BATCH],
+) {
+    for ((e, a), m) in batch.iter().zip(alpha).zip(reach) {
+        let lanes = V::from_bits(e.lanes) & !done;
+        *m = lanes;
+        if V::bits(lanes) == 0 {
+            continue;
+        }
+        if let Some(sp) = splat_at(splats, list, e.at) {
+            (*a, *m) = footprint_alpha::<V>(sp, lanes, px, py);
+        }
+    }
+}
+
+/// What a top-K list holds for the entry at list position `at`: its Gaussian id where the
+/// lists carry ids (`ids`), else the position.
+#[inline(always)]
+pub(super) fn list_payload(ids: Option<&[u32]>, at: u32) -> u32 {
+    match ids {
+        Some(ids) => ids.get(at as usize).copied().unwrap_or(NO_GAUSSIAN),
+        None => at,
     }
 }
 
