@@ -314,6 +314,14 @@ impl Config {
 
     /// Checks every parameter; the error names the first one out of range.
     pub fn validate(&self) -> Result<()> {
+        self.validate_views()?;
+        self.validate_outputs()?;
+        self.faults.validate()
+    }
+
+    /// [`Config::validate`] of the room, the objects, the views and their cameras, and the
+    /// feature dimension.
+    fn validate_views(&self) -> Result<()> {
         check(
             "views",
             self.views,
@@ -387,7 +395,12 @@ impl Config {
             self.feature_dim,
             (1..=65536).contains(&self.feature_dim),
             "1 ..= 65536",
-        )?;
+        )
+    }
+
+    /// [`Config::validate`] of the prompts' distractors, the matches, the evaluation
+    /// frames, the ground-truth Gaussians and the mesh.
+    fn validate_outputs(&self) -> Result<()> {
         if let Some(bad) = self.distractors.iter().find(|d| d.is_empty()) {
             check("distractors", format!("{bad:?}"), false, "non-empty names")?;
         }
@@ -427,8 +440,7 @@ impl Config {
             self.mesh_spacing,
             self.mesh_spacing >= 0.005 && self.mesh_spacing <= 100.0,
             "in [0.005, 100] metres",
-        )?;
-        self.faults.validate()
+        )
     }
 }
 

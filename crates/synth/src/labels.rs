@@ -121,6 +121,54 @@ fn trace(
     c: u32,
     first: usize,
 ) -> (Vec<[i64; 2]>, [i64; 4]) {
+    let (fx, fy) = ((first % width) as i64, (first / width) as i64);
+    let (out, edges, bbox) = boundary_edges(comp, width, height, c, [fx, fy]);
+    let mut used = vec![false; edges.len()];
+    // Outer loop: starts with the top edge of the raster-first pixel.
+    let start = out
+        .get(&[fx, fy])
+        .and_then(|v| v.iter().copied().find(|k| edges[*k].1 == 0))
+        .unwrap_or(0);
+    let mut poly = follow(&out, &edges, start, &mut used);
+    let o0 = poly.first().copied().unwrap_or([fx, fy]);
+    // Holes, in order of their first edge (raster order of the pixels that own them).
+    for k in 0..edges.len() {
+        if used[k] {
+            continue;
+        }
+        let hole = follow(&out, &edges, k, &mut used);
+        let Some(&h0) = hole.first() else { continue };
+        let bend = [h0[0], o0[1]];
+        let mut path = vec![o0, bend, h0];
+        path.extend(hole.iter().skip(1).copied());
+        path.extend([h0, bend, o0]);
+        for p in path {
+            if poly.last() != Some(&p) {
+                poly.push(p);
+            }
+        }
+    }
+    if poly.len() > 1 && poly.last() == poly.first() {
+        poly.pop();
+    }
+    (poly, bbox)
+}
+
+/// A boundary edge: its start vertex and its direction (see [`STEP`]).
+type Edge = ([i64; 2], usize);
+/// Outgoing boundary edges of a component, per start vertex (at most two).
+type EdgesFrom = HashMap<[i64; 2], Vec<usize>>;
+
+/// The boundary edges of component `c` (start vertex, direction), in raster order of their
+/// pixels from the component's raster-first pixel `[fx, fy]`, the edges leaving each
+/// vertex, and the component's bbox. A step of [`trace`].
+fn boundary_edges(
+    comp: &[u32],
+    width: usize,
+    height: usize,
+    c: u32,
+    [fx, fy]: [i64; 2],
+) -> (EdgesFrom, Vec<Edge>, [i64; 4]) {
     let inside = |x: i64, y: i64| {
         x >= 0
             && y >= 0
@@ -128,10 +176,8 @@ fn trace(
             && (y as usize) < height
             && comp[y as usize * width + x as usize] == c
     };
-    // Outgoing boundary edges per start vertex (at most two).
-    let mut out: HashMap<[i64; 2], Vec<usize>> = HashMap::new();
-    let mut edges: Vec<([i64; 2], usize)> = Vec::new();
-    let (fx, fy) = ((first % width) as i64, (first / width) as i64);
+    let mut out: EdgesFrom = HashMap::new();
+    let mut edges: Vec<Edge> = Vec::new();
     let (mut bx0, mut by0, mut bx1, mut by1) = (fx, fy, fx + 1, fy + 1);
     for y in fy..height as i64 {
         for x in 0..width as i64 {
@@ -160,71 +206,47 @@ fn trace(
             }
         }
     }
-    let mut used = vec![false; edges.len()];
-    let follow = |start: usize, used: &mut Vec<bool>| -> Vec<[i64; 2]> {
-        // Walk edges; collect the direction of each.
-        let mut loop_edges = Vec::new();
-        let mut e = start;
-        loop {
-            used[e] = true;
-            loop_edges.push(e);
-            let (v, d) = edges[e];
-            let end = [v[0] + STEP[d][0], v[1] + STEP[d][1]];
-            let cands = out.get(&end).map(Vec::as_slice).unwrap_or(&[]);
-            let free: Vec<usize> = cands.iter().copied().filter(|k| !used[*k]).collect();
-            let next = match free.as_slice() {
-                [] => None,
-                [only] => Some(*only),
-                many => many
-                    .iter()
-                    .copied()
-                    .find(|k| edges[*k].1 == (d + 1) % 4)
-                    .or(Some(many[0])),
-            };
-            match next {
-                Some(n) => e = n,
-                None => break,
-            }
-        }
-        // Corners: vertices where the direction changes, starting at the first corner.
-        let n = loop_edges.len();
-        let dirs: Vec<usize> = loop_edges.iter().map(|e| edges[*e].1).collect();
-        let mut corners = Vec::new();
-        for k in 0..n {
-            if dirs[k] != dirs[(k + n - 1) % n] {
-                corners.push(edges[loop_edges[k]].0);
-            }
-        }
-        corners
-    };
-    // Outer loop: starts with the top edge of the raster-first pixel.
-    let start = out
-        .get(&[fx, fy])
-        .and_then(|v| v.iter().copied().find(|k| edges[*k].1 == 0))
-        .unwrap_or(0);
-    let mut poly = follow(start, &mut used);
-    let o0 = poly.first().copied().unwrap_or([fx, fy]);
-    // Holes, in order of their first edge (raster order of the pixels that own them).
-    for k in 0..edges.len() {
-        if used[k] {
-            continue;
-        }
-        let hole = follow(k, &mut used);
-        let Some(&h0) = hole.first() else { continue };
-        let bend = [h0[0], o0[1]];
-        let mut path = vec![o0, bend, h0];
-        path.extend(hole.iter().skip(1).copied());
-        path.extend([h0, bend, o0]);
-        for p in path {
-            if poly.last() != Some(&p) {
-                poly.push(p);
-            }
+    (out, edges, [bx0, by0, bx1, by1])
+}
+
+/// Walks the unused edges from `start` around their loop (marking them used) and returns
+/// its corners: the vertices where the direction changes, starting at the first corner.
+/// A step of [`trace`].
+fn follow(out: &EdgesFrom, edges: &[Edge], start: usize, used: &mut [bool]) -> Vec<[i64; 2]> {
+    // Walk edges; collect the direction of each.
+    let mut loop_edges = Vec::new();
+    let mut e = start;
+    loop {
+        used[e] = true;
+        loop_edges.push(e);
+        let (v, d) = edges[e];
+        let end = [v[0] + STEP[d][0], v[1] + STEP[d][1]];
+        let cands = out.get(&end).map(Vec::as_slice).unwrap_or(&[]);
+        let free: Vec<usize> = cands.iter().copied().filter(|k| !used[*k]).collect();
+        let next = match free.as_slice() {
+            [] => None,
+            [only] => Some(*only),
+            many => many
+                .iter()
+                .copied()
+                .find(|k| edges[*k].1 == (d + 1) % 4)
+                .or(Some(many[0])),
+        };
+        match next {
+            Some(n) => e = n,
+            None => break,
         }
     }
-    if poly.len() > 1 && poly.last() == poly.first() {
-        poly.pop();
+    // Corners: vertices where the direction changes, starting at the first corner.
+    let n = loop_edges.len();
+    let dirs: Vec<usize> = loop_edges.iter().map(|e| edges[*e].1).collect();
+    let mut corners = Vec::new();
+    for k in 0..n {
+        if dirs[k] != dirs[(k + n - 1) % n] {
+            corners.push(edges[loop_edges[k]].0);
+        }
     }
-    (poly, [bx0, by0, bx1, by1])
+    corners
 }
 
 #[cfg(test)]
