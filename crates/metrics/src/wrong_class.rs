@@ -141,52 +141,7 @@ pub fn wrong_class_pixel_share(
     object_class: &[u32],
     mask_class: &[Option<u32>],
 ) -> Result<WrongClassShare> {
-    let Some(ids) = &objects.object_ids else {
-        return Err(invalid(views_label, "object_ids", "absent"));
-    };
-    if (objects.width, objects.height) != (masks.width, masks.height) {
-        return Err(invalid(
-            views_label,
-            "object_ids",
-            format!(
-                "grid {}x{}, but the masks' grid is {}x{}",
-                objects.width, objects.height, masks.width, masks.height
-            ),
-        ));
-    }
-    if objects.view_names != masks.view_names {
-        return Err(invalid(
-            views_label,
-            "view_names",
-            format!(
-                "{} views, not the masks' {} views in the same order",
-                objects.view_names.len(),
-                masks.view_names.len()
-            ),
-        ));
-    }
-    if ids.len() != objects.view_names.len() * objects.width * objects.height {
-        return Err(invalid(
-            views_label,
-            "object_ids",
-            format!(
-                "{} values, expected {} views x {}x{}",
-                ids.len(),
-                objects.view_names.len(),
-                objects.width,
-                objects.height
-            ),
-        ));
-    }
-    if mask_class.len() != masks.num_masks() {
-        return Err(MetricsError::LengthMismatch {
-            what: "wrong-class share",
-            left_name: "registered masks",
-            left: mask_class.len(),
-            right_name: "masks",
-            right: masks.num_masks(),
-        });
-    }
+    let ids = check_inputs(masks, objects, views_label, mask_class)?;
     let plane = masks.width * masks.height;
     let (mut pixels, mut wrong, mut unregistered_pixels) = (0u64, 0u64, 0u64);
     for v in 0..masks.num_views() {
@@ -244,6 +199,63 @@ pub fn wrong_class_pixel_share(
         unregistered_pixels,
         unregistered_masks: mask_class.iter().filter(|c| c.is_none()).count(),
     })
+}
+
+/// The checks of [`wrong_class_pixel_share`]: the view maps have object ids on the masks'
+/// grid and views, and `mask_class` has one entry per mask. Returns the object ids.
+fn check_inputs<'a>(
+    masks: &Masks,
+    objects: &'a ViewMaps,
+    views_label: &str,
+    mask_class: &[Option<u32>],
+) -> Result<&'a [u32]> {
+    let Some(ids) = objects.object_ids.as_deref() else {
+        return Err(invalid(views_label, "object_ids", "absent"));
+    };
+    if (objects.width, objects.height) != (masks.width, masks.height) {
+        return Err(invalid(
+            views_label,
+            "object_ids",
+            format!(
+                "grid {}x{}, but the masks' grid is {}x{}",
+                objects.width, objects.height, masks.width, masks.height
+            ),
+        ));
+    }
+    if objects.view_names != masks.view_names {
+        return Err(invalid(
+            views_label,
+            "view_names",
+            format!(
+                "{} views, not the masks' {} views in the same order",
+                objects.view_names.len(),
+                masks.view_names.len()
+            ),
+        ));
+    }
+    if ids.len() != objects.view_names.len() * objects.width * objects.height {
+        return Err(invalid(
+            views_label,
+            "object_ids",
+            format!(
+                "{} values, expected {} views x {}x{}",
+                ids.len(),
+                objects.view_names.len(),
+                objects.width,
+                objects.height
+            ),
+        ));
+    }
+    if mask_class.len() != masks.num_masks() {
+        return Err(MetricsError::LengthMismatch {
+            what: "wrong-class share",
+            left_name: "registered masks",
+            left: mask_class.len(),
+            right_name: "masks",
+            right: masks.num_masks(),
+        });
+    }
+    Ok(ids)
 }
 
 #[cfg(test)]
