@@ -113,18 +113,7 @@ pub fn import_langsplat(
         let (local, used) = compact(&plane, m, &seg_label, options.level)?;
         labels.extend(local);
         unused_rows += m - used.len();
-        let table = features.to_f32_vec();
-        for row in used {
-            let start = row * d;
-            let values = table.get(start..start + d).unwrap_or_default();
-            rows.push(normalised(values).ok_or_else(|| {
-                invalid(
-                    &feat_label,
-                    format!("row {row}"),
-                    "has zero or non-finite norm; a mask feature must be a direction",
-                )
-            })?);
-        }
+        push_rows(&mut rows, &features.to_f32_vec(), &used, d, &feat_label)?;
         let total = u32::try_from(rows.len())
             .map_err(|_| invalid(&label, "masks", "more than 4294967295 masks"))?;
         offsets.push(total);
@@ -132,33 +121,8 @@ pub fn import_langsplat(
 
     let (height, width, _) = grid.unwrap_or_default();
     let (feature_dim, _) = dim.unwrap_or_default();
-    let per_view_max = offsets
-        .windows(2)
-        .map(|w| w.get(1).copied().unwrap_or(0) - w.first().copied().unwrap_or(0))
-        .max()
-        .unwrap_or(0);
-    let labels = if per_view_max <= u32::from(u16::MAX) {
-        Labels::U16(
-            labels
-                .iter()
-                .map(|l| if *l == u32::MAX { u16::MAX } else { *l as u16 })
-                .collect::<Vec<_>>()
-                .into(),
-        )
-    } else {
-        Labels::U32(labels.into())
-    };
-    let flat: Vec<f32> = rows.concat();
-    let features = if all_f16 {
-        Floats::F16(
-            flat.iter()
-                .map(|v| f16::from_f32(*v))
-                .collect::<Vec<_>>()
-                .into(),
-        )
-    } else {
-        Floats::F32(flat.into())
-    };
+    let labels = stored_labels(labels, &offsets);
+    let features = stored_features(&rows, all_f16);
     let report = LangSplatReport {
         views: views.len(),
         masks: rows.len(),
@@ -187,6 +151,65 @@ pub fn import_langsplat(
         ]),
     };
     Ok((masks, report))
+}
+
+/// Appends the normalised rows `used` of a view's `d`-wide feature `table` to `rows`; an
+/// error names a row of zero or non-finite norm.
+fn push_rows(
+    rows: &mut Vec<Vec<f32>>,
+    table: &[f32],
+    used: &[usize],
+    d: usize,
+    feat_label: &str,
+) -> Result<()> {
+    for &row in used {
+        let start = row * d;
+        let values = table.get(start..start + d).unwrap_or_default();
+        rows.push(normalised(values).ok_or_else(|| {
+            invalid(
+                feat_label,
+                format!("row {row}"),
+                "has zero or non-finite norm; a mask feature must be a direction",
+            )
+        })?);
+    }
+    Ok(())
+}
+
+/// The view-local labels in the narrowest dtype that holds every view's masks (`offsets`:
+/// the views' first global masks, then the total).
+fn stored_labels(labels: Vec<u32>, offsets: &[u32]) -> Labels {
+    let per_view_max = offsets
+        .windows(2)
+        .map(|w| w.get(1).copied().unwrap_or(0) - w.first().copied().unwrap_or(0))
+        .max()
+        .unwrap_or(0);
+    if per_view_max <= u32::from(u16::MAX) {
+        Labels::U16(
+            labels
+                .iter()
+                .map(|l| if *l == u32::MAX { u16::MAX } else { *l as u16 })
+                .collect::<Vec<_>>()
+                .into(),
+        )
+    } else {
+        Labels::U32(labels.into())
+    }
+}
+
+/// The mask features, one row after the other: F16 when every view stored F16.
+fn stored_features(rows: &[Vec<f32>], all_f16: bool) -> Floats {
+    let flat: Vec<f32> = rows.concat();
+    if all_f16 {
+        Floats::F16(
+            flat.iter()
+                .map(|v| f16::from_f32(*v))
+                .collect::<Vec<_>>()
+                .into(),
+        )
+    } else {
+        Floats::F32(flat.into())
+    }
 }
 
 struct View {
