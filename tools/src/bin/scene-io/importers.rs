@@ -1,19 +1,23 @@
-//! Subcommands whose bodies do not fit `main.rs`: ScanNet folders, LLFF scenes and COLMAP
-//! tracks.
+//! The importers that take more than a read and a write: ScanNet folders and meshes, LLFF
+//! scenes, COLMAP tracks, LangSplat features, keypoint pairs and undistortion.
 
 use std::path::{Path, PathBuf};
 
 use profuse_formats::{Cameras, FileKind};
 use profuse_tools::{warn, BoxError};
 use scene_io::colmap::{read_colmap_model_capped, track_matches, TrackOptions};
+use scene_io::keypoints::{import_keypoint_pairs, KeypointOptions};
+use scene_io::langsplat::{import_langsplat, LangSplatOptions};
 use scene_io::llff::{import_llff, LlffOptions};
 use scene_io::scannet::{
-    import_scannet_folder, read_axis_alignment, AxisAlignment, ScannetOptions,
+    align_mesh, import_scannet_folder, read_axis_alignment, read_scannet_labels_ply, AxisAlignment,
+    ScannetOptions,
 };
-use serde_json::Value;
+use scene_io::undistort::{cropped, undistort_scene, valid_rects, UndistortReport};
+use serde_json::{json, Value};
 
 use crate::args::TracksArgs;
-use crate::{save, stamp, warn_all};
+use crate::{done, npz_files, save, stamp, warn_all, with_paths};
 
 /// `scene-io scannet`: `align` is (`--axis-align`, `--no-axis-align`).
 pub fn scannet(
@@ -81,4 +85,97 @@ pub fn tracks(args: TracksArgs, quiet: bool) -> Result<Value, BoxError> {
         &report,
         quiet,
     )
+}
+
+/// `scene-io scannet-mesh`: the labelled mesh, axis-aligned with `axis_align`'s matrix.
+pub fn scannet_mesh(
+    labels_ply: &Path,
+    out: &Path,
+    axis_align: Option<&Path>,
+    quiet: bool,
+) -> Result<Value, BoxError> {
+    let (mut mesh, report) = read_scannet_labels_ply(labels_ply)?;
+    if let Some(txt) = axis_align {
+        align_mesh(&mut mesh, &read_axis_alignment(txt)?);
+        mesh.extra
+            .insert("axis_aligned".to_string(), "true".to_string());
+    }
+    stamp(&mut mesh.extra, "scannet-mesh");
+    mesh.write(out)?;
+    done(quiet, out);
+    let mut value = with_paths("scannet-mesh", labels_ply, out, &report)?;
+    if let Value::Object(map) = &mut value {
+        map.insert("axis_aligned".to_string(), json!(axis_align.is_some()));
+    }
+    Ok(value)
+}
+
+/// `scene-io langsplat`: one level of a `language_features/` directory as masks, in the
+/// order of `cameras` when given.
+pub fn langsplat(
+    features_dir: &Path,
+    out: &Path,
+    cameras: Option<&Path>,
+    level: u8,
+    quiet: bool,
+) -> Result<Value, BoxError> {
+    let cameras = cameras.map(Cameras::read).transpose()?;
+    let options = LangSplatOptions {
+        level: usize::from(level),
+        cameras,
+    };
+    let (mut masks, report) = import_langsplat(features_dir, &options)?;
+    stamp(&mut masks.extra, "langsplat");
+    save(&masks, "langsplat", features_dir, out, &report, quiet)
+}
+
+/// `scene-io keypoints`: keypoint-pair `.npz` files (directories expanded) as sparse
+/// matches of `cameras`; `options.target` is read from `pinhole_cameras`.
+pub fn keypoints(
+    inputs: &[PathBuf],
+    cameras: &Path,
+    out: &Path,
+    mut options: KeypointOptions,
+    pinhole_cameras: Option<&Path>,
+    quiet: bool,
+) -> Result<Value, BoxError> {
+    let cams = Cameras::read(cameras)?;
+    options.target = pinhole_cameras.map(Cameras::read).transpose()?;
+    let files = npz_files(inputs)?;
+    let label = cameras.display().to_string();
+    let (mut matches, report) = import_keypoint_pairs(&files, &cams, &label, &options)?;
+    warn_all(quiet, &report.skipped);
+    stamp(&mut matches.extra, "keypoints");
+    save(&matches, "keypoints", cameras, out, &report, quiet)
+}
+
+/// `scene-io undistort`: the pinhole cameras (cut to the valid area with `crop`) into
+/// `out_dir`, with the undistorted images unless `cameras_only`.
+pub fn undistort(
+    cameras: &Path,
+    scene_dir: &Path,
+    out_dir: &Path,
+    cameras_only: bool,
+    crop: bool,
+    quiet: bool,
+) -> Result<Value, BoxError> {
+    let cams = Cameras::read(cameras)?;
+    let (mut pinhole, report) = if cameras_only {
+        std::fs::create_dir_all(out_dir)?;
+        if crop {
+            let rects = valid_rects(&cams, &cameras.display().to_string())?;
+            let report = UndistortReport {
+                crops: rects.clone(),
+                ..Default::default()
+            };
+            (cropped(&cams, &rects), report)
+        } else {
+            (scene_io::undistort::pinhole(&cams), Default::default())
+        }
+    } else {
+        undistort_scene(&cams, scene_dir, out_dir, crop)?
+    };
+    stamp(&mut pinhole.extra, "undistort");
+    let out = out_dir.join("cameras.safetensors");
+    save(&pinhole, "undistort", cameras, &out, &report, quiet)
 }

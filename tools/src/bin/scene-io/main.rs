@@ -11,14 +11,10 @@ use clap::Parser;
 use profuse_formats::{Cameras, FileKind, Gaussians};
 use profuse_tools::{chatty, run, warn, BoxError};
 use scene_io::colmap::{import_colmap, ColmapOptions};
-use scene_io::keypoints::{import_keypoint_pairs, KeypointOptions};
-use scene_io::langsplat::{import_langsplat, LangSplatOptions};
+use scene_io::keypoints::KeypointOptions;
 use scene_io::ply::{read_inria_ply, write_inria_ply};
-use scene_io::scannet::{
-    align_mesh, read_axis_alignment, read_scannet_labels_ply, read_scannet_npy,
-};
+use scene_io::scannet::read_scannet_npy;
 use scene_io::transforms::read_transforms;
-use scene_io::undistort::{cropped, undistort_scene, valid_rects, UndistortReport};
 use serde_json::{json, Map, Value};
 
 mod args;
@@ -90,22 +86,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             labels_ply,
             out,
             axis_align,
-        } => {
-            let (mut mesh, report) = read_scannet_labels_ply(&labels_ply)?;
-            if let Some(txt) = &axis_align {
-                align_mesh(&mut mesh, &read_axis_alignment(txt)?);
-                mesh.extra
-                    .insert("axis_aligned".to_string(), "true".to_string());
-            }
-            stamp(&mut mesh.extra, "scannet-mesh");
-            mesh.write(&out)?;
-            done(quiet, &out);
-            let mut value = with_paths("scannet-mesh", &labels_ply, &out, &report)?;
-            if let Value::Object(map) = &mut value {
-                map.insert("axis_aligned".to_string(), json!(axis_align.is_some()));
-            }
-            Ok(value)
-        }
+        } => importers::scannet_mesh(&labels_ply, &out, axis_align.as_deref(), quiet),
         Command::ScannetNpy { dir_or_prefix, out } => {
             let (mut mesh, report) = read_scannet_npy(&dir_or_prefix)?;
             stamp(&mut mesh.extra, "scannet-npy");
@@ -116,16 +97,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             out,
             cameras,
             level,
-        } => {
-            let cameras = cameras.as_deref().map(Cameras::read).transpose()?;
-            let options = LangSplatOptions {
-                level: usize::from(level),
-                cameras,
-            };
-            let (mut masks, report) = import_langsplat(&features_dir, &options)?;
-            stamp(&mut masks.extra, "langsplat");
-            save(&masks, "langsplat", &features_dir, &out, &report, quiet)
-        }
+        } => importers::langsplat(&features_dir, &out, cameras.as_deref(), level, quiet),
         Command::Keypoints {
             inputs,
             cameras,
@@ -136,21 +108,15 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             no_undistort,
             pinhole_cameras,
         } => {
-            let cams = Cameras::read(&cameras)?;
-            let target = pinhole_cameras.as_deref().map(Cameras::read).transpose()?;
-            let files = npz_files(&inputs)?;
             let options = KeypointOptions {
                 key_i,
                 key_j,
                 integer_centres: !corner_origin,
                 undistort: !no_undistort,
-                target,
+                target: None,
             };
-            let label = cameras.display().to_string();
-            let (mut matches, report) = import_keypoint_pairs(&files, &cams, &label, &options)?;
-            warn_all(quiet, &report.skipped);
-            stamp(&mut matches.extra, "keypoints");
-            save(&matches, "keypoints", &cameras, &out, &report, quiet)
+            let pinhole = pinhole_cameras.as_deref();
+            importers::keypoints(&inputs, &cameras, &out, options, pinhole, quiet)
         }
         Command::Undistort {
             cameras,
@@ -158,27 +124,7 @@ fn execute(command: Command, quiet: bool) -> Result<Value, BoxError> {
             out_dir,
             cameras_only,
             crop,
-        } => {
-            let cams = Cameras::read(&cameras)?;
-            let (mut pinhole, report) = if cameras_only {
-                std::fs::create_dir_all(&out_dir)?;
-                if crop {
-                    let rects = valid_rects(&cams, &cameras.display().to_string())?;
-                    let report = UndistortReport {
-                        crops: rects.clone(),
-                        ..Default::default()
-                    };
-                    (cropped(&cams, &rects), report)
-                } else {
-                    (scene_io::undistort::pinhole(&cams), Default::default())
-                }
-            } else {
-                undistort_scene(&cams, &scene_dir, &out_dir, crop)?
-            };
-            stamp(&mut pinhole.extra, "undistort");
-            let out = out_dir.join("cameras.safetensors");
-            save(&pinhole, "undistort", &cameras, &out, &report, quiet)
-        }
+        } => importers::undistort(&cameras, &scene_dir, &out_dir, cameras_only, crop, quiet),
     }
 }
 
