@@ -20,5 +20,5 @@ pub mod splat;
 pub use error::{Result, ViewError};
 pub use presets::{presets, rotation_to_quaternion, Preset};
 pub use scene::{OutputPaths, SceneInfo, ScoringPaths, ViewScene, DEFAULT_CLICK_COSINE_THRESHOLD};
-pub use server::{answer, listen, percent_decode, Answer, Listener};
+pub use server::{answer, host_allowed, listen, percent_decode, respond, Answer, Listener};
 pub use splat::{splat_bytes, SPLAT_ROW_BYTES};

@@ -70,6 +70,20 @@ pub struct OutputPaths {
 }
 
 impl OutputPaths {
+    /// Every file of the output in use.
+    pub fn files(&self) -> Vec<&Path> {
+        let mut v = vec![self.cameras.as_path(), self.gaussians.as_path()];
+        match &self.scoring {
+            ScoringPaths::None => {}
+            ScoringPaths::Relevancy { prompts, pq } => v.extend([prompts.as_path(), pq.as_path()]),
+            ScoringPaths::ClickCosine { pq } => v.push(pq.as_path()),
+        }
+        if let Some((m, p)) = &self.click {
+            v.extend([m.as_path(), p.as_path()]);
+        }
+        v
+    }
+
     /// The files of `dir`, which is a scene directory with an `out/` of pipeline outputs
     /// or that `out/` directory itself. Names the first required file that is missing.
     ///
@@ -246,15 +260,24 @@ impl ViewScene {
     }
 
     /// Reads and checks the files of `paths` and scores every offered prompt.
+    ///
+    /// From this call on the process reads files into memory instead of mapping them
+    /// ([`profuse_formats::read_files_into_memory`]): a viewer runs for hours, and a mapped
+    /// input that someone copies over in place would kill it (SIGBUS) at its next request.
     pub fn open_paths(paths: OutputPaths) -> Result<ViewScene> {
+        profuse_formats::read_files_into_memory();
         let gaussians = Gaussians::read(&paths.gaussians)?;
         let cameras = Cameras::read(&paths.cameras)?;
         let gaussians_name = paths.gaussians.display().to_string();
         let click = match &paths.click {
-            Some((masks, proposals)) => Some(ClickInputs {
-                masks: Masks::read(masks)?,
-                proposals: Proposals::read(proposals)?,
-            }),
+            Some((masks, proposals)) => {
+                let inputs = ClickInputs {
+                    masks: Masks::read(masks)?,
+                    proposals: Proposals::read(proposals)?,
+                };
+                check_click_inputs(&inputs, &cameras, (masks, proposals), &paths.cameras)?;
+                Some(inputs)
+            }
             None => None,
         };
         let scoring = match &paths.scoring {
@@ -427,6 +450,32 @@ fn score(
         offered,
         relevancy,
     })
+}
+
+/// Masks and proposals of another scene would be accepted at start and then refuse every
+/// click: they are checked against the cameras (views, image sizes) and each other now.
+fn check_click_inputs(
+    inputs: &ClickInputs,
+    cameras: &Cameras,
+    (masks_path, proposals_path): (&PathBuf, &PathBuf),
+    cameras_path: &Path,
+) -> Result<()> {
+    let m = &inputs.masks;
+    if m.num_views() != cameras.len() {
+        return Err(ViewError::Mismatch {
+            file: masks_path.clone(),
+            reason: format!(
+                "{} views, but the cameras ({}) have {}: the masks of another scene?",
+                m.num_views(),
+                cameras_path.display(),
+                cameras.len()
+            ),
+        });
+    }
+    inputs
+        .proposals
+        .check_against(m, &proposals_path.display().to_string())?;
+    Ok(())
 }
 
 /// Reads the PQ codes of click-only mode and checks them against the Gaussians and against

@@ -13,6 +13,16 @@
 //! | `/api/export.ply?prompt=…` or `?view=…&x=…&y=…` (and `threshold`) | that selection's Gaussians as an INRIA 3DGS PLY download |
 //!
 //! Everything the page loads comes from these routes: nothing is fetched from elsewhere.
+//!
+//! Every request goes through [`respond`] first:
+//! * only `GET` and `HEAD` are answered (405 otherwise, before any body is read);
+//! * on a loopback address the `Host` header must name a loopback host (`localhost`,
+//!   `127.x.x.x`, `[::1]`; a port, if given, this one) (421 otherwise), so that a page of another site
+//!   whose name resolves to 127.0.0.1 (DNS rebinding) cannot read the scene;
+//! * answers carry `X-Content-Type-Options: nosniff`, `X-Frame-Options: DENY`, a
+//!   `frame-ancestors 'none'` policy and `Referrer-Policy: no-referrer`;
+//! * a server-side failure (500) answers a generic text and prints the detail, which names
+//!   files on the server, on stderr only.
 
 use std::net::{IpAddr, SocketAddr, TcpListener};
 
@@ -112,8 +122,16 @@ impl Listener {
     /// went away) is reported on stderr and does not stop the server.
     pub fn serve(&self, scene: &ViewScene) {
         for request in self.server.incoming_requests() {
-            let answer = answer(scene, request.url());
-            let mut response = tiny_http::Response::from_data(answer.body)
+            let host = request
+                .headers()
+                .iter()
+                .find(|h| h.field.equiv("Host"))
+                .map(|h| h.value.as_str().to_string());
+            let method = request.method().as_str().to_string();
+            let answer = respond(scene, &method, host.as_deref(), request.url(), self.addr);
+            let head = method == "HEAD";
+            let body = if head { Vec::new() } else { answer.body };
+            let mut response = tiny_http::Response::from_data(body)
                 .with_status_code(answer.status)
                 .with_header(header("Content-Type", answer.content_type))
                 .with_header(header("Cache-Control", "no-store"));
@@ -125,6 +143,66 @@ impl Listener {
             }
         }
     }
+}
+
+/// Headers every answer carries: no MIME sniffing, no framing by other pages, no referrer.
+const SECURITY_HEADERS: [(&str, &str); 4] = [
+    ("X-Content-Type-Options", "nosniff"),
+    ("X-Frame-Options", "DENY"),
+    ("Content-Security-Policy", "frame-ancestors 'none'"),
+    ("Referrer-Policy", "no-referrer"),
+];
+
+/// The answer to one request: `method`, the `Host` header (if any) and `url`, for a server
+/// listening on `addr` (see the module documentation for the rules before [`answer`]).
+pub fn respond(
+    scene: &ViewScene,
+    method: &str,
+    host: Option<&str>,
+    url: &str,
+    addr: SocketAddr,
+) -> Answer {
+    let mut out = if method != "GET" && method != "HEAD" {
+        let mut a = Answer::error(405, format!("method {method} not allowed: GET or HEAD"));
+        a.headers.push(("Allow", "GET, HEAD".into()));
+        a
+    } else if !host_allowed(host, addr) {
+        Answer::error(
+            421,
+            format!(
+                "Host {:?} is not this server's loopback address (open {})",
+                host.unwrap_or(""),
+                format_args!("http://{addr}/")
+            ),
+        )
+    } else {
+        answer(scene, url)
+    };
+    out.headers
+        .extend(SECURITY_HEADERS.iter().map(|(n, v)| (*n, (*v).to_string())));
+    out
+}
+
+/// Whether a request with this `Host` header may be answered by a server on `addr`: any
+/// host when the server listens beyond loopback (the user chose to serve others), else a
+/// loopback name (with the server's port, when a port is given).
+pub fn host_allowed(host: Option<&str>, addr: SocketAddr) -> bool {
+    if !addr.ip().is_loopback() {
+        return true;
+    }
+    let Some(host) = host else { return false };
+    let (name, port) = match host.rsplit_once(':') {
+        Some((n, p)) if !n.ends_with(':') && (n.starts_with('[') == n.ends_with(']')) => {
+            (n, Some(p))
+        }
+        _ => (host, None),
+    };
+    // The name is what tells a rebinding page apart; a port, when given, must be ours.
+    let port_ok = port.is_none_or(|p| p.parse::<u16>().ok() == Some(addr.port()));
+    let name = name.trim_start_matches('[').trim_end_matches(']');
+    let loopback = name.eq_ignore_ascii_case("localhost")
+        || name.parse::<IpAddr>().is_ok_and(|ip| ip.is_loopback());
+    port_ok && loopback
 }
 
 fn header(name: &str, value: &str) -> tiny_http::Header {
@@ -153,9 +231,30 @@ pub fn answer(scene: &ViewScene, url: &str) -> Answer {
     // The query crate's errors here come from the request (a click on no mask, a view
     // out of range): the client's to fix, like a bad parameter.
     result.unwrap_or_else(|e| match e {
-        ViewError::BadRequest { .. } | ViewError::Query(_) => Answer::error(400, e.to_string()),
-        _ => Answer::error(500, e.to_string()),
+        ViewError::BadRequest { .. } | ViewError::Query(_) => {
+            Answer::error(400, without_server_paths(scene, &e.to_string()))
+        }
+        _ => {
+            // The detail names files on the server: for its operator, not for the page.
+            eprintln!("profuse view: {path}: {e}");
+            Answer::error(
+                500,
+                "internal error (the server printed the detail on its stderr)".into(),
+            )
+        }
     })
+}
+
+/// `text` with the output's file paths replaced by their file names: the page needs to know
+/// which file, not where the server keeps it.
+fn without_server_paths(scene: &ViewScene, text: &str) -> String {
+    let mut out = text.to_string();
+    for p in scene.paths().files() {
+        if let Some(name) = p.file_name() {
+            out = out.replace(&p.display().to_string(), &name.to_string_lossy());
+        }
+    }
+    out
 }
 
 fn json_answer(info: &SceneInfo) -> Answer {

@@ -16,8 +16,8 @@ use profuse_formats::camera::{quaternion_to_rotation, SH_C0};
 use profuse_formats::{Cameras, FileKind, Gaussians, Prompts, ViewMaps};
 use profuse_query::{score_prompts, select, Descriptors, Rule, ScoreKind};
 use profuse_view::{
-    answer, listen, percent_decode, presets, rotation_to_quaternion, splat_bytes, ScoringPaths,
-    ViewError, ViewScene, DEFAULT_CLICK_COSINE_THRESHOLD, SPLAT_ROW_BYTES,
+    answer, listen, percent_decode, presets, respond, rotation_to_quaternion, splat_bytes,
+    ScoringPaths, ViewError, ViewScene, DEFAULT_CLICK_COSINE_THRESHOLD, SPLAT_ROW_BYTES,
 };
 
 const LOCALHOST: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
@@ -800,3 +800,130 @@ fn the_page_tints_the_sofa_in_chromium() {
 }
 
 const SECOND_PROMPT: &str = "table";
+
+/// The rules every request passes before its route (DNS rebinding, methods, headers), and
+/// error bodies that name files without the server's folders.
+#[test]
+fn requests_from_other_hosts_or_methods_are_refused_and_answers_are_hardened() {
+    let scene = demo_scene();
+    let addr: std::net::SocketAddr = "127.0.0.1:8765".parse().unwrap();
+    let get = |host: Option<&str>, url: &str| respond(scene, "GET", host, url, addr);
+    for ok in [
+        "127.0.0.1:8765",
+        "localhost:8765",
+        "LOCALHOST",
+        "127.0.0.2:8765",
+    ] {
+        assert_eq!(get(Some(ok), "/api/scene").status, 200, "{ok}");
+    }
+    for refused in [
+        None,
+        Some("attacker.example:8765"),
+        Some("attacker.example"),
+        Some("localhost:80"),
+        Some("127.0.0.1.attacker.example:8765"),
+    ] {
+        let a = get(refused, "/api/scene");
+        assert_eq!(a.status, 421, "{refused:?}");
+        assert!(!a.body.starts_with(b"{"), "{refused:?} got the scene");
+    }
+    let ipv6: std::net::SocketAddr = "[::1]:9000".parse().unwrap();
+    assert_eq!(
+        respond(scene, "GET", Some("[::1]:9000"), "/api/scene", ipv6).status,
+        200
+    );
+    // Served beyond loopback on purpose: any Host.
+    let wide: std::net::SocketAddr = "0.0.0.0:8765".parse().unwrap();
+    assert_eq!(
+        respond(scene, "GET", Some("viewer.lan:8765"), "/", wide).status,
+        200
+    );
+    for method in ["POST", "DELETE", "OPTIONS", "PUT"] {
+        let a = respond(scene, method, Some("localhost:8765"), "/api/scene", addr);
+        assert_eq!(a.status, 405, "{method}");
+        assert!(a
+            .headers
+            .iter()
+            .any(|(n, v)| *n == "Allow" && v == "GET, HEAD"));
+    }
+    let a = get(Some("localhost:8765"), "/");
+    for (name, value) in [
+        ("X-Content-Type-Options", "nosniff"),
+        ("X-Frame-Options", "DENY"),
+        ("Content-Security-Policy", "frame-ancestors 'none'"),
+        ("Referrer-Policy", "no-referrer"),
+    ] {
+        assert!(
+            a.headers.iter().any(|(n, v)| *n == name && v == value),
+            "{name}: {:?}",
+            a.headers
+        );
+    }
+    // A click on a view that does not exist: the error names the cameras file, not where
+    // the server keeps it.
+    let a = get(
+        Some("localhost:8765"),
+        "/api/click?view=9999&x=1&y=1&threshold=0.5",
+    );
+    assert_eq!(a.status, 400);
+    let body = String::from_utf8_lossy(&a.body).to_string();
+    assert!(body.contains("cameras.safetensors"), "{body}");
+    let root = demo().display().to_string();
+    assert!(!body.contains(&root), "{body}");
+}
+
+/// Masks of another scene are refused when the viewer opens (they used to be accepted and
+/// then refuse every click); and a file copied over an input while the viewer runs cannot
+/// kill it (inputs are read into memory, not mapped).
+#[test]
+fn inputs_of_another_scene_are_refused_and_replaced_files_do_not_kill_the_viewer() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    for f in [
+        "cameras.safetensors",
+        "masks.safetensors",
+        "prompts.safetensors",
+    ] {
+        std::fs::copy(demo().join(f), root.join(f)).unwrap();
+    }
+    std::fs::create_dir_all(root.join("out")).unwrap();
+    for f in [
+        "gaussians.safetensors",
+        "pq.safetensors",
+        "proposals.safetensors",
+    ] {
+        std::fs::copy(demo().join("out").join(f), root.join("out").join(f)).unwrap();
+    }
+    let scene = ViewScene::open(root).unwrap();
+    let export = "/api/export.ply?prompt=sofa&threshold=0.5";
+    let before = answer(&scene, export);
+    assert_eq!(before.status, 200);
+    // `cp` over a mapped input truncates it in place: the next read of a mapped page
+    // would raise SIGBUS. Read into memory, the viewer answers as before.
+    std::fs::write(root.join("out/gaussians.safetensors"), b"x").unwrap();
+    std::fs::write(root.join("out/pq.safetensors"), b"x").unwrap();
+    let after = answer(&scene, export);
+    assert_eq!(after.status, 200);
+    assert_eq!(after.body, before.body);
+    assert_eq!(answer(&scene, "/scene.splat").body, scene.splat());
+    drop(scene);
+
+    // The masks of a two-view scene against the demo's cameras.
+    std::fs::copy(
+        demo().join("out/gaussians.safetensors"),
+        root.join("out/gaussians.safetensors"),
+    )
+    .unwrap();
+    std::fs::copy(
+        demo().join("out/pq.safetensors"),
+        root.join("out/pq.safetensors"),
+    )
+    .unwrap();
+    let other = profuse_formats::samples::masks();
+    other.write(root.join("masks.safetensors")).unwrap();
+    let err = ViewScene::open(root).unwrap_err();
+    assert!(
+        err.to_string().contains("masks.safetensors") && err.to_string().contains("views"),
+        "{err}"
+    );
+}

@@ -232,6 +232,14 @@ fn run_sweep(opts: &SweepOptions, as_json: bool, quiet: bool) -> Result<String, 
 /// Opens the output, binds, prints the URL and serves until the process is stopped.
 fn view(dir: &Path, host: std::net::IpAddr, port: u16, only: bool, quiet: bool) -> ExitCode {
     use profuse_view::{OutputPaths, ViewScene};
+    if !host.is_loopback() {
+        // Said even with --quiet: the scene becomes readable by anyone who can reach it.
+        eprintln!(
+            "profuse view: warning: --host {host} serves the scene and its PLY export to every \
+             machine that can reach this one, without authentication; use 127.0.0.1 (the \
+             default) unless that is what you want"
+        );
+    }
     let opened = profuse_view::listen(host, port).and_then(|listener| {
         let paths = if only {
             OutputPaths::find_gaussians_only(dir)?
