@@ -607,6 +607,13 @@ def _foreign_format(head: bytes) -> str | None:
 def _open_container(path: Any, label: str) -> Container:
     """:func:`open_container` naming the file ``label`` in errors (the writers validate
     their temporary file under the target's name)."""
+    # A FIFO (or device) would block the open itself or never end: refuse it first.
+    try:
+        regular = stat.S_ISREG(os.stat(path).st_mode)
+    except OSError as e:
+        raise _io_error(label, "cannot open", e) from None
+    if not regular:
+        raise _io_error(label, "cannot open", OSError("not a regular file"))
     try:
         f = open(path, "rb")
     except OSError as e:

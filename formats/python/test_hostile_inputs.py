@@ -532,5 +532,20 @@ class MutationPropertyTests(AgreeMixin, unittest.TestCase):
         print(f"reproducer kept at {keep}", file=sys.stderr)
 
 
+class SpecialFileTests(unittest.TestCase):
+    def test_a_fifo_or_folder_is_refused_instead_of_blocking(self) -> None:
+        """A FIFO would block open() forever: refused at once, like a folder (the Rust
+        reader's rule and wording)."""
+        with tempfile.TemporaryDirectory() as d:
+            fifo = Path(d) / "g.safetensors"
+            os.mkfifo(fifo)
+            for path in (fifo, Path(d)):
+                with self.assertRaises(pf.FormatError) as e:
+                    pf.read_gaussians(path)
+                self.assertEqual(e.exception.code, "io")
+                self.assertIn("not a regular file", str(e.exception))
+
+
 if __name__ == "__main__":
     unittest.main()
+

@@ -290,8 +290,20 @@ pub struct Container {
     metadata: BTreeMap<String, String>,
 }
 
+/// Whether [`Container::open`] reads files into memory instead of mapping them
+/// ([`read_files_into_memory`]).
+static READ_INTO_MEMORY: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// From now on, every file this process opens is read into memory instead of mapped.
+/// For long-running processes (the viewer): a mapped file that another program truncates or
+/// rewrites in place (a plain `cp` over it) raises SIGBUS on the next access, which kills
+/// the process; a copy in memory cannot be changed under it. Costs the files' size in RAM.
+pub fn read_files_into_memory() {
+    READ_INTO_MEMORY.store(true, std::sync::atomic::Ordering::Relaxed);
+}
+
 impl Container {
-    /// Memory-maps and parses a file.
+    /// Memory-maps (or, after [`read_files_into_memory`], reads) and parses a file.
     pub fn open(path: impl AsRef<Path>) -> Result<Container> {
         let path = path.as_ref();
         let label = path.display().to_string();
@@ -300,10 +312,23 @@ impl Container {
             action,
             source,
         };
+        // A FIFO (or device) would block the open itself, or never end: refuse it first.
+        let kind = std::fs::metadata(path).map_err(|e| io("cannot open", e))?;
+        if !kind.is_file() {
+            return Err(io(
+                "cannot open",
+                std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a regular file"),
+            ));
+        }
         let file = std::fs::File::open(path).map_err(|e| io("cannot open", e))?;
         let len = file.metadata().map_err(|e| io("cannot stat", e))?.len();
         let bytes = if len == 0 {
             Bytes::Owned(Vec::new())
+        } else if READ_INTO_MEMORY.load(std::sync::atomic::Ordering::Relaxed) {
+            let mut buf = Vec::new();
+            std::io::Read::read_to_end(&mut std::io::BufReader::new(file), &mut buf)
+                .map_err(|e| io("cannot read", e))?;
+            Bytes::Owned(buf)
         } else {
             // SAFETY: the map is read-only; a file truncated by another process while
             // mapped can raise SIGBUS, which is the documented limit of memory mapping

@@ -89,7 +89,9 @@ mod writer;
 
 pub use cameras::{Cameras, Pose, ROTATION_TOLERANCE};
 pub use check::{format_float, Floats, Labels};
-pub use container::{Buffer, Container, Dtype, Element, Scalar, TensorInfo, MAX_HEADER_BYTES};
+pub use container::{
+    read_files_into_memory, Buffer, Container, Dtype, Element, Scalar, TensorInfo, MAX_HEADER_BYTES,
+};
 pub use error::{FormatError, Result};
 pub use features::Features;
 pub use fuse_partial::{

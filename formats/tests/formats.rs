@@ -131,6 +131,26 @@ fn missing_file_is_an_io_error_naming_it() {
     assert!(err.to_string().contains("/nonexistent/g.safetensors"));
 }
 
+/// A FIFO would block the open (and a reader) forever: it is refused at once, like a folder.
+#[test]
+fn a_fifo_or_folder_is_refused_instead_of_blocking() {
+    let dir = tempfile::tempdir().unwrap();
+    let fifo = dir.path().join("g.safetensors");
+    if !std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .is_ok_and(|s| s.success())
+    {
+        eprintln!("SKIP: mkfifo is not available");
+        return;
+    }
+    for path in [fifo.as_path(), dir.path()] {
+        let err = Gaussians::read(path).unwrap_err();
+        assert_eq!(err.code(), "io");
+        assert!(err.to_string().contains("not a regular file"), "{err}");
+    }
+}
+
 #[test]
 fn samples_round_trip_and_are_zero_copy() {
     let dir = tempfile::tempdir().unwrap();
