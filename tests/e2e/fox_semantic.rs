@@ -111,6 +111,10 @@ fn fox_semantic_quick_selects_the_fox_in_held_out_photos() {
             .unwrap_or_else(|| panic!("no stage {name}: {prepare}"))["report"]
             .clone()
     };
+    // The matches are made here (XFeat from Rust), never touching a held-out photo.
+    let corr = report("correspondences");
+    assert_eq!(corr["sources"], serde_json::json!(["xfeat"]), "{corr}");
+    assert!(corr["matches"].as_u64().unwrap() > 100_000, "{corr}");
     for n in report("masks")["masks_per_view"].as_array().unwrap() {
         assert!(n.as_u64().unwrap() >= 20, "{n} masks in a view");
     }
