@@ -1,7 +1,7 @@
 //! `fuse bench`: registration (render + accumulate + finish) on a synth `scale` scene with
 //! its ground-truth Gaussians and proposals from its ground-truth objects.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use profuse_formats::{Cameras, FileKind, Gaussians, Masks};
@@ -94,28 +94,7 @@ pub fn run(
     let gaussians = Gaussians::read(dir.join("gt/gaussians.safetensors"))?;
     let cameras = Cameras::read(dir.join("cameras.safetensors"))?;
     let masks = Masks::read(dir.join("masks.safetensors"))?;
-    let groups = if p.no_proposals {
-        Groups::per_mask(&masks)
-    } else {
-        let proposals = profuse_fuse::testing::proposals_from_mask_objects(
-            dir.join("gt/mask_objects.json"),
-            &masks,
-            1,
-        )?;
-        // Ground-truth proposals carry no shares: every member weighs its mass.
-        let name = "ground-truth proposals";
-        let build = match p.registration {
-            Register::Proposals => Groups::from_proposals,
-            Register::Blend => Groups::blend,
-        };
-        build(
-            &masks,
-            &proposals,
-            Orphans::Ignore,
-            MemberWeight::Mass,
-            name,
-        )?
-    };
+    let groups = bench_groups(p, &dir, &masks)?;
     let scene = Scene::new(&gaussians, &cameras, &masks);
     let load_s = t0.elapsed().as_secs_f64();
 
@@ -184,4 +163,31 @@ pub fn run(
             "median_tile_pairs": common::median_count(&mut counters.tile_pairs),
         },
     }))
+}
+
+/// The grouping registered: one group per mask with `--no-proposals`, else the scene's
+/// ground-truth objects as proposals (`gt/mask_objects.json` under `dir`), registered as
+/// `p.registration` says.
+fn bench_groups(p: &Params, dir: &Path, masks: &Masks) -> Result<Groups, BoxError> {
+    if p.no_proposals {
+        return Ok(Groups::per_mask(masks));
+    }
+    let proposals = profuse_fuse::testing::proposals_from_mask_objects(
+        dir.join("gt/mask_objects.json"),
+        masks,
+        1,
+    )?;
+    // Ground-truth proposals carry no shares: every member weighs its mass.
+    let name = "ground-truth proposals";
+    let build = match p.registration {
+        Register::Proposals => Groups::from_proposals,
+        Register::Blend => Groups::blend,
+    };
+    Ok(build(
+        masks,
+        &proposals,
+        Orphans::Ignore,
+        MemberWeight::Mass,
+        name,
+    )?)
 }

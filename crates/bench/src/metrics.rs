@@ -90,6 +90,45 @@ pub fn run(p: &Params, show: bool) -> Result<Value, BoxError> {
 
     // LERF: star-shaped 200-gon per polygon, rasterised and scored against a shifted copy.
     let t = Instant::now();
+    let iou_sum = star_polygon_ious(polygons, width, height, &mut next);
+    let lerf_s = t.elapsed().as_secs_f64();
+    if show {
+        eprintln!("lerf: {lerf_s:.3} s");
+    }
+
+    // Surface: points in synth's demo room.
+    let scene = synth::Scene::generate(&synth::Config::preset(synth::Preset::Demo, 0))?;
+    let pts = room_points(points, scene.room_size, &mut next);
+    let t = Instant::now();
+    let d = surface_distances_with_progress(&pts, |p| scene.distance_to_surface(p), |_| {});
+    let surface_s = t.elapsed().as_secs_f64();
+    let median = summarize(&d, scene_extent(scene.room_size)).median;
+
+    let rate = |n: usize, s: f64| if s > 0.0 { n as f64 / s } else { f64::NAN };
+    Ok(json!({
+        "cores": std::thread::available_parallelism().map_or(1, |n| n.get()),
+        "rayon_num_threads": std::env::var("RAYON_NUM_THREADS").ok(),
+        "scannet": {"vertices": vertices, "sets": 3, "seconds": scannet_s,
+                    "vertices_per_s": rate(vertices * 3, scannet_s), "miou": scannet_miou},
+        "ari": {"items": items, "seconds": ari_s, "items_per_s": rate(items, ari_s), "ari": ari},
+        "lerf": {"width": width, "height": height, "pairs": polygons, "seconds": lerf_s,
+                 "pairs_per_s": rate(polygons, lerf_s),
+                 "mean_iou": if polygons > 0 { iou_sum / polygons as f64 } else { f64::NAN }},
+        "surface": {"points": points, "objects": scene.len(), "seconds": surface_s,
+                    "points_per_s": rate(points, surface_s), "median": median},
+        "peak_rss_mb": common::peak_rss_mb(),
+    }))
+}
+
+/// The LERF part: `polygons` star-shaped 200-gons at random places of a `width` x `height`
+/// grid, each rasterised and scored against a shifted copy; returns the sum of the IoUs.
+/// `next(m)` draws in `0..m`.
+fn star_polygon_ious(
+    polygons: usize,
+    width: u32,
+    height: u32,
+    next: &mut dyn FnMut(u64) -> u64,
+) -> f64 {
     let mut iou_sum = 0.0;
     for k in 0..polygons {
         let (cx, cy) = (
@@ -114,43 +153,26 @@ pub fn run(p: &Params, show: bool) -> Result<Value, BoxError> {
             iou_sum += i as f64 / u as f64;
         }
     }
-    let lerf_s = t.elapsed().as_secs_f64();
-    if show {
-        eprintln!("lerf: {lerf_s:.3} s");
-    }
+    iou_sum
+}
 
-    // Surface: points in synth's demo room.
-    let scene = synth::Scene::generate(&synth::Config::preset(synth::Preset::Demo, 0))?;
-    let [sx, sy, sz] = scene.room_size;
-    let pts: Vec<[f32; 3]> = (0..points)
+/// The surface part's `points` uniform points in a room of `room_size` (centred on the
+/// vertical axis, floor at z = 0). `next(m)` draws in `0..m`.
+fn room_points(
+    points: usize,
+    [sx, sy, sz]: [f64; 3],
+    next: &mut dyn FnMut(u64) -> u64,
+) -> Vec<[f32; 3]> {
+    (0..points)
         .map(|_| {
             let u = |s: f64, m: &mut dyn FnMut(u64) -> u64| {
                 (m(1 << 20) as f64 / f64::from(1 << 20) * s) as f32
             };
             [
-                u(sx, &mut next) - (sx / 2.0) as f32,
-                u(sy, &mut next) - (sy / 2.0) as f32,
-                u(sz, &mut next),
+                u(sx, &mut *next) - (sx / 2.0) as f32,
+                u(sy, &mut *next) - (sy / 2.0) as f32,
+                u(sz, &mut *next),
             ]
         })
-        .collect();
-    let t = Instant::now();
-    let d = surface_distances_with_progress(&pts, |p| scene.distance_to_surface(p), |_| {});
-    let surface_s = t.elapsed().as_secs_f64();
-    let median = summarize(&d, scene_extent(scene.room_size)).median;
-
-    let rate = |n: usize, s: f64| if s > 0.0 { n as f64 / s } else { f64::NAN };
-    Ok(json!({
-        "cores": std::thread::available_parallelism().map_or(1, |n| n.get()),
-        "rayon_num_threads": std::env::var("RAYON_NUM_THREADS").ok(),
-        "scannet": {"vertices": vertices, "sets": 3, "seconds": scannet_s,
-                    "vertices_per_s": rate(vertices * 3, scannet_s), "miou": scannet_miou},
-        "ari": {"items": items, "seconds": ari_s, "items_per_s": rate(items, ari_s), "ari": ari},
-        "lerf": {"width": width, "height": height, "pairs": polygons, "seconds": lerf_s,
-                 "pairs_per_s": rate(polygons, lerf_s),
-                 "mean_iou": if polygons > 0 { iou_sum / polygons as f64 } else { f64::NAN }},
-        "surface": {"points": points, "objects": scene.len(), "seconds": surface_s,
-                    "points_per_s": rate(points, surface_s), "median": median},
-        "peak_rss_mb": common::peak_rss_mb(),
-    }))
+        .collect()
 }

@@ -5,9 +5,9 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use profuse_formats::Gaussians;
+use profuse_formats::{Cameras, Gaussians};
 use serde_json::{json, Map, Value};
-use splat_raster::{camera, Rasterizer, RenderOptions, Simd, ViewRender};
+use splat_raster::{camera, Phases, Rasterizer, RenderOptions, RenderStats, Simd, ViewRender};
 
 use crate::common::{self, Progress};
 use crate::BoxError;
@@ -179,44 +179,11 @@ pub fn run(
         // One untimed warm-up view (page faults of fresh buffers, thread start).
         let mut out = ViewRender::default();
         raster.render_view_into(&cams, 0, &opts, &mut out)?;
-        let (mut times, mut cpus) = (Vec::new(), Vec::new());
-        let mut phases: [Vec<f64>; 4] = Default::default();
-        let (mut groups, mut blends, mut rates, mut occupancy, mut inserted) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut samples = Samples::default();
         progress.start(&name, cams.len() as u64);
         for v in 0..cams.len() {
-            // The fastest of `repeat` renders of the view: other load on the machine only
-            // ever slows a render down.
-            let (mut best, mut best_cpu) = (f64::INFINITY, f64::INFINITY);
-            let (mut best_stats, mut best_phases) = (out.stats(), out.phases());
-            for _ in 0..p.repeat {
-                let cpu0 = common::process_cpu_s();
-                let t = Instant::now();
-                raster.render_view_into(&cams, v, &opts, &mut out)?;
-                let wall = t.elapsed().as_secs_f64();
-                if wall < best {
-                    (best_stats, best_phases) = (out.stats(), out.phases());
-                }
-                best = best.min(wall);
-                best_cpu = best_cpu.min(common::process_cpu_s() - cpu0);
-            }
-            times.push(best);
-            cpus.push(best_cpu);
-            let ph = best_phases;
-            for (all, d) in phases
-                .iter_mut()
-                .zip([ph.project, ph.sort, ph.bucket, ph.blend])
-            {
-                all.push(d.as_secs_f64() * 1e3);
-            }
-            let c = best_stats.counts;
-            if c.groups > 0 {
-                groups.push(c.groups as f64);
-                blends.push(c.blends as f64);
-                rates.push(c.blends as f64 / best_cpu);
-                occupancy.push(c.live_lanes as f64 / (c.groups as f64 * lanes(&raster)));
-                inserted.push(c.inserted as f64);
-            }
+            let best = best_render(&raster, &cams, v, &opts, p.repeat, &mut out)?;
+            samples.add(best, lanes(&raster));
             if k.is_none() {
                 visible.push(out.stats().visible);
                 pairs.push(out.stats().tile_pairs);
@@ -224,35 +191,7 @@ pub fn run(
             progress.inc(1);
         }
         progress.finish();
-        let med = common::median(&mut times);
-        results.insert(
-            name.replace("_s", "_cpu_s"),
-            json!(common::median(&mut cpus)),
-        );
-        let [mut project, mut sort, mut bucket, mut blend] = phases;
-        results.insert(
-            name.replace("_s", "_phases_ms"),
-            json!({
-                "project": common::median(&mut project),
-                "sort": common::median(&mut sort),
-                "bucket": common::median(&mut bucket),
-                "blend": common::median(&mut blend),
-            }),
-        );
-        if !blends.is_empty() {
-            results.insert(
-                name.replace("_s", "_counts"),
-                json!({
-                    "groups": common::median(&mut groups),
-                    "blends": common::median(&mut blends),
-                    "blends_per_cpu_s": common::median(&mut rates),
-                    "lane_occupancy": common::median(&mut occupancy),
-                    "inserted": common::median(&mut inserted),
-                }),
-            );
-        }
-        results.insert(name, json!(med));
-        medians.push(med);
+        medians.push(samples.report(name, &mut results));
     }
     if let [color, topk10, topk40] = medians[..] {
         let mpix = f64::from(p.width) * f64::from(p.height) / 1e6;
@@ -279,4 +218,117 @@ pub fn run(
         results.extend(rest);
     }
     Ok(Value::Object(results))
+}
+
+/// The fastest of `repeat` renders of view `v` into `out`: wall and CPU seconds (each the
+/// least), and the stats and phases of the fastest. Other load on the machine only ever
+/// slows a render down.
+fn best_render(
+    raster: &Rasterizer<'_>,
+    cams: &Cameras,
+    v: usize,
+    opts: &RenderOptions,
+    repeat: u64,
+    out: &mut ViewRender,
+) -> Result<BestRender, BoxError> {
+    let (mut best, mut best_cpu) = (f64::INFINITY, f64::INFINITY);
+    let (mut best_stats, mut best_phases) = (out.stats(), out.phases());
+    for _ in 0..repeat {
+        let cpu0 = common::process_cpu_s();
+        let t = Instant::now();
+        raster.render_view_into(cams, v, opts, out)?;
+        let wall = t.elapsed().as_secs_f64();
+        if wall < best {
+            (best_stats, best_phases) = (out.stats(), out.phases());
+        }
+        best = best.min(wall);
+        best_cpu = best_cpu.min(common::process_cpu_s() - cpu0);
+    }
+    Ok(BestRender {
+        wall: best,
+        cpu: best_cpu,
+        stats: best_stats,
+        phases: best_phases,
+    })
+}
+
+/// One view's fastest render (see [`best_render`]).
+struct BestRender {
+    wall: f64,
+    cpu: f64,
+    stats: RenderStats,
+    phases: Phases,
+}
+
+/// The per-view samples of one render configuration.
+#[derive(Default)]
+struct Samples {
+    times: Vec<f64>,
+    cpus: Vec<f64>,
+    /// Project, sort, bucket and blend, in milliseconds.
+    phases: [Vec<f64>; 4],
+    groups: Vec<f64>,
+    blends: Vec<f64>,
+    rates: Vec<f64>,
+    occupancy: Vec<f64>,
+    inserted: Vec<f64>,
+}
+
+impl Samples {
+    /// Adds one view's fastest render; `lanes`: of the blend's pixel groups.
+    fn add(&mut self, best: BestRender, lanes: f64) {
+        self.times.push(best.wall);
+        self.cpus.push(best.cpu);
+        let ph = best.phases;
+        for (all, d) in self
+            .phases
+            .iter_mut()
+            .zip([ph.project, ph.sort, ph.bucket, ph.blend])
+        {
+            all.push(d.as_secs_f64() * 1e3);
+        }
+        let c = best.stats.counts;
+        if c.groups > 0 {
+            self.groups.push(c.groups as f64);
+            self.blends.push(c.blends as f64);
+            self.rates.push(c.blends as f64 / best.cpu);
+            self.occupancy
+                .push(c.live_lanes as f64 / (c.groups as f64 * lanes));
+            self.inserted.push(c.inserted as f64);
+        }
+    }
+
+    /// Inserts the medians into `results` under names made from `name` (`…_s`); returns
+    /// the median wall seconds per view.
+    fn report(mut self, name: String, results: &mut Map<String, Value>) -> f64 {
+        let med = common::median(&mut self.times);
+        results.insert(
+            name.replace("_s", "_cpu_s"),
+            json!(common::median(&mut self.cpus)),
+        );
+        let [mut project, mut sort, mut bucket, mut blend] = self.phases;
+        results.insert(
+            name.replace("_s", "_phases_ms"),
+            json!({
+                "project": common::median(&mut project),
+                "sort": common::median(&mut sort),
+                "bucket": common::median(&mut bucket),
+                "blend": common::median(&mut blend),
+            }),
+        );
+        if !self.blends.is_empty() {
+            results.insert(
+                name.replace("_s", "_counts"),
+                json!({
+                    "groups": common::median(&mut self.groups),
+                    "blends": common::median(&mut self.blends),
+                    "blends_per_cpu_s": common::median(&mut self.rates),
+                    "lane_occupancy": common::median(&mut self.occupancy),
+                    "inserted": common::median(&mut self.inserted),
+                }),
+            );
+        }
+        results.insert(name, json!(med));
+        med
+    }
 }

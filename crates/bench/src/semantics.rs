@@ -21,13 +21,7 @@ use crate::BoxError;
 
 /// Runs the comparison; `semantics` picks the figures reported at the top level.
 pub fn run(a: &Params, semantics: Semantics) -> Result<Value, BoxError> {
-    if a.dim == 0 || a.m == 0 || !a.dim.is_multiple_of(a.m) || a.proposals == 0 {
-        return Err(format!(
-            "--dim {} must be a positive multiple of --m {}, and --proposals >= 1",
-            a.dim, a.m
-        )
-        .into());
-    }
+    check_params(a)?;
     let mut rng = SplitMix(SplitMix64::new(0x51ab_1e24));
     let prompts = random_prompts(&mut rng, a.dim);
     let pq = random_pq(&mut rng, a.gaussians, a.dim, a.m)?;
@@ -120,6 +114,18 @@ pub fn run(a: &Params, semantics: Semantics) -> Result<Value, BoxError> {
         "repeat": a.repeat,
         "peak_rss_mb": common::peak_rss_mb(),
     }))
+}
+
+/// That `--dim` is a positive multiple of `--m` and there is a proposal.
+fn check_params(a: &Params) -> Result<(), BoxError> {
+    if a.dim == 0 || a.m == 0 || !a.dim.is_multiple_of(a.m) || a.proposals == 0 {
+        return Err(format!(
+            "--dim {} must be a positive multiple of --m {}, and --proposals >= 1",
+            a.dim, a.m
+        )
+        .into());
+    }
+    Ok(())
 }
 
 /// One query prompt plus the four canonical negatives, random unit-free embeddings.
