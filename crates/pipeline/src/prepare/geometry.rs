@@ -185,9 +185,40 @@ fn correspondences_stage(
     held_out: &[usize],
     out: &Path,
 ) -> Result<StageLine> {
-    let cameras = cameras_path(&opts.scene);
-    let source = super::poses::source_cameras_path(&opts.scene);
-    let mut inputs = vec![cameras.clone(), source.clone()];
+    let plan = plan_sources(opts, layout, posed, held_out)?;
+    Ok(stage(
+        r,
+        "correspondences",
+        Value::Object(plan.params.clone()),
+        plan.inputs.clone(),
+        vec![out.to_path_buf()],
+        || make_correspondences(r, opts, posed, held_out, &plan, out),
+    )?)
+}
+
+/// Which sources the correspondences stage uses, and its stage inputs and parameters.
+struct SourcePlan {
+    /// XFeat's view pairs (when XFeat runs).
+    xfeat_pairs: Option<Vec<(usize, usize)>>,
+    /// The user's keypoint-pair files (`--keypoints`).
+    keypoint_files: Option<Vec<PathBuf>>,
+    /// Every file the stage reads.
+    inputs: Vec<PathBuf>,
+    /// Its parameters (the stage record's).
+    params: serde_json::Map<String, Value>,
+}
+
+/// The sources of [`correspondences_stage`], or an option error when the capture has none.
+fn plan_sources(
+    opts: &PrepareOptions,
+    layout: &Layout,
+    posed: &Posed,
+    held_out: &[usize],
+) -> Result<SourcePlan> {
+    let mut inputs = vec![
+        cameras_path(&opts.scene),
+        super::poses::source_cameras_path(&opts.scene),
+    ];
     let mut params = serde_json::Map::new();
     params.insert("held_out".into(), json!(held_out));
     if let Some(model) = &posed.model {
@@ -196,30 +227,25 @@ fn correspondences_stage(
         inputs.extend([model_files.cameras, model_files.images, model_files.points]);
         params.insert("tracks".into(), to_json(&opts.config.tracks));
     }
-    let keypoint_files = opts
-        .keypoints
-        .as_ref()
-        .map(|dir| keypoint_files(dir, &posed.source, held_out));
-    let xfeat_pairs = match (&keypoint_files, opts.config.matcher.xfeat) {
-        (None, true) => {
-            let m = opts.config.matcher;
-            let pairs = profuse_prep::xfeat::neighbour_pairs(&posed.source, m.neighbours, held_out);
-            let views: std::collections::BTreeSet<usize> =
-                pairs.iter().flat_map(|&(i, j)| [i, j]).collect();
-            inputs.extend(
-                views
-                    .iter()
-                    .map(|&v| posed.source_dir.join(&posed.source.image_names[v])),
-            );
-            params.insert("xfeat".into(), to_json(&m));
-            Some(pairs)
-        }
-        _ => None,
-    };
-    if let (Some(files), Some(dir)) = (&keypoint_files, &opts.keypoints) {
+    let keypoint_files = opts.keypoints.as_ref().map(|dir| {
+        let files = keypoint_files(dir, &posed.source, held_out);
         inputs.extend(files.iter().cloned());
         params.insert("keypoints".into(), json!(dir));
-    }
+        files
+    });
+    let m = opts.config.matcher;
+    let xfeat_pairs = (keypoint_files.is_none() && m.xfeat).then(|| {
+        let pairs = profuse_prep::xfeat::neighbour_pairs(&posed.source, m.neighbours, held_out);
+        let views: std::collections::BTreeSet<usize> =
+            pairs.iter().flat_map(|&(i, j)| [i, j]).collect();
+        inputs.extend(
+            views
+                .iter()
+                .map(|&v| posed.source_dir.join(&posed.source.image_names[v])),
+        );
+        params.insert("xfeat".into(), to_json(&m));
+        pairs
+    });
     if posed.model.is_none() && xfeat_pairs.is_none() && keypoint_files.is_none() {
         let what = match layout {
             Layout::Transforms { .. } => "a transforms.json gives poses but no correspondences",
@@ -235,73 +261,89 @@ fn correspondences_stage(
             ),
         });
     }
-    Ok(stage(
-        r,
-        "correspondences",
-        Value::Object(params),
+    Ok(SourcePlan {
+        xfeat_pairs,
+        keypoint_files,
         inputs,
-        vec![out.to_path_buf()],
-        || {
-            let mut merged: Option<SparseMatches> = None;
-            let mut report = serde_json::Map::new();
-            let mut add = |m: SparseMatches| {
-                merged = Some(match merged.take() {
-                    Some(a) => a.merged(&m),
-                    None => m,
-                });
-            };
-            if let Some(model) = &posed.model {
-                let (m, rep) = track_matches(opts, posed, model, held_out)?;
-                report.insert(
-                    "tracks".into(),
-                    json!({"matches": m.points_i.len(), "report": rep}),
-                );
-                add(m);
-            }
-            let pair_files = match (&xfeat_pairs, &keypoint_files) {
-                (Some(pairs), _) => {
-                    let (files, rep) = run_xfeat(r, opts, posed, pairs)?;
-                    report.insert("xfeat".into(), rep);
-                    Some((files, "xfeat"))
-                }
-                (None, Some(files)) => Some((files.clone(), "keypoints")),
-                (None, None) => None,
-            };
-            if let Some((files, key)) = pair_files {
-                let options = scene_io::keypoints::KeypointOptions {
-                    target: Some(posed.cameras.clone()),
-                    ..Default::default()
-                };
-                let label = source.display().to_string();
-                let (m, rep) = scene_io::keypoints::import_keypoint_pairs(
-                    &files,
-                    &posed.source,
-                    &label,
-                    &options,
-                )
-                .map_err(stage_err("correspondences"))?;
-                let entry = report.entry(key).or_insert_with(|| json!({}));
-                if let Value::Object(o) = entry {
-                    o.insert("matches".into(), json!(m.points_i.len()));
-                    o.insert("import".into(), report_json(&rep));
-                }
-                add(m);
-            }
-            let Some(matches) = merged else {
-                return Err(crate::PipelineError::Stage {
-                    stage: "correspondences",
-                    source: "no source of correspondences".into(),
-                });
-            };
-            matches.write(out).map_err(stage_err("correspondences"))?;
-            let sources: Vec<&String> = report.keys().collect();
-            let mut value = json!({"sources": sources, "matches": matches.points_i.len(), "pairs": matches.pairs.len()});
-            if let Value::Object(o) = &mut value {
-                o.extend(report);
-            }
-            Ok(value)
-        },
-    )?)
+        params,
+    })
+}
+
+/// The work of [`correspondences_stage`]: each planned source's matches, merged into
+/// `out`; the report names the sources and what each gave.
+fn make_correspondences(
+    r: &Runner<'_>,
+    opts: &PrepareOptions,
+    posed: &Posed,
+    held_out: &[usize],
+    plan: &SourcePlan,
+    out: &Path,
+) -> std::result::Result<Value, crate::PipelineError> {
+    let mut parts: Vec<SparseMatches> = Vec::new();
+    let mut report = serde_json::Map::new();
+    if let Some(model) = &posed.model {
+        let (m, rep) = track_matches(opts, posed, model, held_out)?;
+        report.insert(
+            "tracks".into(),
+            json!({"matches": m.points_i.len(), "report": rep}),
+        );
+        parts.push(m);
+    }
+    let pair_files = match (&plan.xfeat_pairs, &plan.keypoint_files) {
+        (Some(pairs), _) => {
+            let (files, rep) = run_xfeat(r, opts, posed, pairs)?;
+            report.insert("xfeat".into(), rep);
+            Some((files, "xfeat"))
+        }
+        (None, Some(files)) => Some((files.clone(), "keypoints")),
+        (None, None) => None,
+    };
+    if let Some((files, key)) = pair_files {
+        let (m, rep) = import_pairs(&files, opts, posed)?;
+        let entry = report.entry(key).or_insert_with(|| json!({}));
+        if let Value::Object(o) = entry {
+            o.insert("matches".into(), json!(m.points_i.len()));
+            o.insert("import".into(), rep);
+        }
+        parts.push(m);
+    }
+    let matches = parts
+        .into_iter()
+        .reduce(|a, b| a.merged(&b))
+        .ok_or_else(|| crate::PipelineError::Stage {
+            stage: "correspondences",
+            source: "no source of correspondences".into(),
+        })?;
+    matches.write(out).map_err(stage_err("correspondences"))?;
+    let sources: Vec<&String> = report.keys().collect();
+    let mut value = json!({
+        "sources": sources,
+        "matches": matches.points_i.len(),
+        "pairs": matches.pairs.len(),
+    });
+    if let Value::Object(o) = &mut value {
+        o.extend(report);
+    }
+    Ok(value)
+}
+
+/// Keypoint-pair files of the original photos, undistorted and cut into the scene's pixels.
+fn import_pairs(
+    files: &[PathBuf],
+    opts: &PrepareOptions,
+    posed: &Posed,
+) -> std::result::Result<(SparseMatches, Value), crate::PipelineError> {
+    let options = scene_io::keypoints::KeypointOptions {
+        target: Some(posed.cameras.clone()),
+        ..Default::default()
+    };
+    let label = super::poses::source_cameras_path(&opts.scene)
+        .display()
+        .to_string();
+    let (m, rep) =
+        scene_io::keypoints::import_keypoint_pairs(files, &posed.source, &label, &options)
+            .map_err(stage_err("correspondences"))?;
+    Ok((m, report_json(&rep)))
 }
 
 /// Any stage crate's error, boxed (XFeat's sink writes files with scene-io).
