@@ -94,6 +94,61 @@ impl Config {
         self.warp_graph
             .validate()
             .map_err(|e| out_of_domain("warp_graph", e))?;
+        self.validate_late_stages()
+    }
+
+    /// The parameters that used to fail only when their stage ran, after the earlier
+    /// stages had spent their time (fuse, pq, query).
+    fn validate_late_stages(&self) -> Result<()> {
+        let bad = |key: &str, value: String, expected: &str| PipelineError::Config {
+            key: key.into(),
+            detail: format!("{value}: expected {expected}"),
+        };
+        let max_k = splat_raster::MAX_TOP_K;
+        let f = &self.fuse;
+        if f.k == 0 || f.k > max_k {
+            return Err(bad("fuse.k", f.k.to_string(), &format!("1..={max_k}")));
+        }
+        if !(0.0..=1.0).contains(&f.min_share) {
+            return Err(bad(
+                "fuse.min_share",
+                f.min_share.to_string(),
+                "a share in [0, 1]",
+            ));
+        }
+        if !(f.pixel_share_power.is_finite() && f.pixel_share_power >= 0.0) {
+            let v = f.pixel_share_power.to_string();
+            return Err(bad("fuse.pixel_share_power", v, "a finite number >= 0"));
+        }
+        if self.pq.m == 0 {
+            return Err(bad(
+                "pq.m",
+                "0".into(),
+                "a number of sub-quantisers >= 1 dividing the descriptors' dimension",
+            ));
+        }
+        if self.pq.sample < profuse_pq::KSUB {
+            let v = self.pq.sample.to_string();
+            return Err(bad(
+                "pq.sample",
+                v,
+                &format!(">= {} (one centroid each)", profuse_pq::KSUB),
+            ));
+        }
+        let q = &self.query;
+        if !q.threshold.is_finite() {
+            return Err(bad(
+                "query.threshold",
+                q.threshold.to_string(),
+                "a finite number",
+            ));
+        }
+        if !q.gamma.is_finite() {
+            return Err(bad("query.gamma", q.gamma.to_string(), "a finite number"));
+        }
+        if q.k == 0 || q.k > max_k {
+            return Err(bad("query.k", q.k.to_string(), &format!("1..={max_k}")));
+        }
         Ok(())
     }
 }

@@ -320,6 +320,52 @@ pub(crate) fn to_json(v: &impl Serialize) -> Value {
     serde_json::to_value(v).unwrap_or(Value::Null)
 }
 
+/// What would fail only at the pq or query stage, checked before any stage runs: PQ's
+/// sub-quantisers must divide the masks' descriptor dimension, and the prompts (when the
+/// scene has them) must live in the same space as the masks' descriptors.
+fn check_dimensions(p: &Paths, config: &Config) -> Result<()> {
+    use profuse_formats::{FileKind, Masks, Prompts};
+    let masks = Masks::read(&p.masks).map_err(stage_err("warp-graph"))?;
+    let m = config.pq.m;
+    if !masks.dim.is_multiple_of(m) {
+        return Err(PipelineError::Config {
+            key: "pq.m".into(),
+            detail: format!(
+                "{m} does not divide the dimension {} of the descriptors in {} (choose a \
+                 divisor, e.g. --set pq.m={})",
+                masks.dim,
+                p.masks.display(),
+                largest_divisor_up_to(masks.dim, m)
+            ),
+        });
+    }
+    if p.prompts.is_file() {
+        let prompts = Prompts::read(&p.prompts).map_err(stage_err("query"))?;
+        if prompts.dim != masks.dim {
+            return Err(PipelineError::Config {
+                key: "prompts".into(),
+                detail: format!(
+                    "{} holds {}-d embeddings but the descriptors of {} are {}-d: the prompts \
+                     of another encoder or scene?",
+                    p.prompts.display(),
+                    prompts.dim,
+                    p.masks.display(),
+                    masks.dim
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The largest divisor of `n` that is at most `cap` (at least 1).
+fn largest_divisor_up_to(n: usize, cap: usize) -> usize {
+    (1..=cap.min(n).max(1))
+        .rev()
+        .find(|d| n.is_multiple_of(*d))
+        .unwrap_or(1)
+}
+
 /// Runs the pipeline on a scene directory: gs-init, warp-graph (skipped for the
 /// `fuse.no_proposals` baseline), fuse, pq, query and, when the scene has a labelled mesh,
 /// vertex-transfer. Writes `config.toml` (the effective configuration) into the output
@@ -347,6 +393,7 @@ pub fn run(
         )?;
     }
     check_input("warp-graph", &p.masks, "masks file")?;
+    check_dimensions(&p, config)?;
     profuse_formats::output::check_output_dir(&out)?;
     std::fs::create_dir_all(&out).map_err(io_err(&out, "cannot create the output directory"))?;
     let _lock = profuse_formats::output::lock_dir(&out, opts.wait)?;

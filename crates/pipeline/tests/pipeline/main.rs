@@ -214,6 +214,50 @@ fn missing_inputs_and_bad_parameters_name_the_file_or_key_and_write_nothing() {
     );
 }
 
+/// What used to fail only when its stage ran, after gs-init, warp-graph and fuse had run,
+/// fails before any stage: PQ's sub-quantisers that do not divide the descriptors'
+/// dimension (the default 128 on tiny's 64-d), prompts of another dimension, and
+/// out-of-domain fuse, pq and query values. Nothing is written.
+#[test]
+fn parameters_and_inputs_that_would_fail_a_late_stage_fail_before_any_stage() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let fails = |cfg: &Config, key: &str| {
+        let e = run(dir.path(), cfg, &RunOptions::default(), &|_| {}).unwrap_err();
+        assert!(e.to_string().contains(key), "{key}: {e}");
+        assert!(!dir.path().join("out").exists(), "{key}: out/ was written");
+        e.to_string()
+    };
+    let e = fails(&Config::default(), "pq.m");
+    assert!(
+        e.contains("128") && e.contains("64") && e.contains("pq.m=64"),
+        "{e}"
+    );
+    for (set, key) in [
+        ("fuse.k=0", "fuse.k"),
+        ("fuse.min_share=1.5", "fuse.min_share"),
+        ("pq.m=0", "pq.m"),
+        ("query.threshold=nan", "query.threshold"),
+        ("query.k=300", "query.k"),
+    ] {
+        let cfg = tiny_config().with_overrides(&[set.into()]).unwrap();
+        fails(&cfg, key);
+    }
+    // Prompts of another encoder: 8-d embeddings against 64-d descriptors.
+    let prompts = profuse_formats::Prompts {
+        names: vec!["sofa".into()],
+        dim: 8,
+        embeddings: vec![0.5f32; 8].into(),
+        class_ids: None,
+        extra: Default::default(),
+    };
+    prompts
+        .write(dir.path().join("prompts.safetensors"))
+        .unwrap();
+    let e = fails(&tiny_config(), "prompts");
+    assert!(e.contains("8-d") && e.contains("64-d"), "{e}");
+}
+
 /// `RunOptions::proposals` replaces warp-graph by a given file (here the ground truth's,
 /// through `sweep::run_oracle`): the proposals are exactly the ground truth (ARI 1), the
 /// stage is skipped when up to date, a file of the wrong length is refused naming both
