@@ -12,6 +12,7 @@
 //! See the crate README for the library choice, the page and the measured frame rates.
 
 pub mod error;
+pub mod http;
 pub mod presets;
 pub mod scene;
 pub mod server;

@@ -1,4 +1,5 @@
-//! The HTTP side: a tiny_http server on one socket, answering from a [`ViewScene`].
+//! The HTTP side: a server on one socket ([`crate::http`]: one request per connection, with
+//! limits), answering from a [`ViewScene`].
 //!
 //! Routes (all GET):
 //!
@@ -24,11 +25,14 @@
 //! * a server-side failure (500) answers a generic text and prints the detail, which names
 //!   files on the server, on stderr only.
 
-use std::net::{IpAddr, SocketAddr, TcpListener};
+use std::net::{IpAddr, SocketAddr, TcpListener, TcpStream};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Duration;
 
 use profuse_query::{Click, ClickTarget};
 
 use crate::error::{Result, ViewError};
+use crate::http;
 use crate::scene::{SceneInfo, ViewScene};
 
 const INDEX_HTML: &str = include_str!("../web/index.html");
@@ -70,17 +74,10 @@ impl Answer {
 
 /// The listening socket. It is bound before the scene is read, so that a taken port is
 /// reported at once.
+#[derive(Debug)]
 pub struct Listener {
-    server: tiny_http::Server,
+    listener: TcpListener,
     addr: SocketAddr,
-}
-
-impl std::fmt::Debug for Listener {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Listener")
-            .field("addr", &self.addr)
-            .finish()
-    }
 }
 
 /// Listens on `host:port` (port 0: any free port). A port in use is
@@ -100,11 +97,7 @@ pub fn listen(host: IpAddr, port: u16) -> Result<Listener> {
         addr: wanted.to_string(),
         source,
     })?;
-    let server = tiny_http::Server::from_listener(listener, None).map_err(|e| ViewError::Bind {
-        addr: addr.to_string(),
-        source: std::io::Error::other(e.to_string()),
-    })?;
-    Ok(Listener { server, addr })
+    Ok(Listener { listener, addr })
 }
 
 impl Listener {
@@ -118,30 +111,78 @@ impl Listener {
         format!("http://{}/", self.addr)
     }
 
-    /// Answers requests about `scene` until the process ends. A failed reply (the browser
-    /// went away) is reported on stderr and does not stop the server.
+    /// Answers requests about `scene` until the process ends, each connection on its own
+    /// thread (at most [`http::MAX_CONNECTIONS`] at once; 503 beyond). A failed accept
+    /// (out of file descriptors) or reply is reported on stderr and does not stop the
+    /// server.
     pub fn serve(&self, scene: &ViewScene) {
-        for request in self.server.incoming_requests() {
-            let host = request
-                .headers()
-                .iter()
-                .find(|h| h.field.equiv("Host"))
-                .map(|h| h.value.as_str().to_string());
-            let method = request.method().as_str().to_string();
-            let answer = respond(scene, &method, host.as_deref(), request.url(), self.addr);
-            let head = method == "HEAD";
-            let body = if head { Vec::new() } else { answer.body };
-            let mut response = tiny_http::Response::from_data(body)
-                .with_status_code(answer.status)
-                .with_header(header("Content-Type", answer.content_type))
-                .with_header(header("Cache-Control", "no-store"));
-            for (name, value) in &answer.headers {
-                response = response.with_header(header(name, value));
+        let open = AtomicUsize::new(0);
+        std::thread::scope(|s| loop {
+            let mut stream = match self.listener.accept() {
+                Ok((stream, _)) => stream,
+                Err(e) => {
+                    eprintln!("profuse view: accept failed: {e} (retrying)");
+                    std::thread::sleep(Duration::from_millis(100));
+                    continue;
+                }
+            };
+            let _ = stream.set_read_timeout(Some(http::READ_TIMEOUT));
+            let _ = stream.set_write_timeout(Some(http::WRITE_TIMEOUT));
+            if open.fetch_add(1, Ordering::SeqCst) >= http::MAX_CONNECTIONS {
+                open.fetch_sub(1, Ordering::SeqCst);
+                let busy = Answer::error(503, "too many connections; try again".into());
+                reply(&mut stream, &busy, true);
+                continue;
             }
-            if let Err(e) = request.respond(response) {
-                eprintln!("profuse view: reply failed: {e}");
-            }
+            let (open, addr) = (&open, self.addr);
+            s.spawn(move || {
+                serve_connection(scene, stream, addr);
+                open.fetch_sub(1, Ordering::SeqCst);
+            });
+        });
+    }
+}
+
+/// One connection: its request head, the answer, close.
+fn serve_connection(scene: &ViewScene, mut stream: TcpStream, addr: SocketAddr) {
+    let (answer, with_body) = match http::read_head(&mut stream) {
+        Ok(head) => {
+            let a = respond(
+                scene,
+                &head.method,
+                head.host.as_deref(),
+                &head.target,
+                addr,
+            );
+            (a, head.method != "HEAD")
         }
+        Err(http::HeadError::TooLarge) => (
+            Answer::error(
+                431,
+                format!("request head over {} bytes", http::MAX_HEAD_BYTES),
+            ),
+            true,
+        ),
+        Err(http::HeadError::Malformed) => {
+            (Answer::error(400, "not an HTTP/1.x request".into()), true)
+        }
+        Err(http::HeadError::Gone) => return,
+    };
+    reply(&mut stream, &answer, with_body);
+}
+
+/// Writes `answer` with the headers every answer carries.
+fn reply(stream: &mut TcpStream, answer: &Answer, with_body: bool) {
+    let mut headers: Vec<(&str, String)> = vec![
+        ("Content-Type", answer.content_type.to_string()),
+        ("Cache-Control", "no-store".to_string()),
+    ];
+    headers.extend(answer.headers.iter().map(|(n, v)| (*n, v.clone())));
+    if !headers.iter().any(|(n, _)| *n == "X-Content-Type-Options") {
+        headers.extend(SECURITY_HEADERS.iter().map(|(n, v)| (*n, (*v).to_string())));
+    }
+    if let Err(e) = http::write_answer(stream, answer.status, &headers, &answer.body, with_body) {
+        eprintln!("profuse view: reply failed: {e}");
     }
 }
 
@@ -203,12 +244,6 @@ pub fn host_allowed(host: Option<&str>, addr: SocketAddr) -> bool {
     let loopback = name.eq_ignore_ascii_case("localhost")
         || name.parse::<IpAddr>().is_ok_and(|ip| ip.is_loopback());
     port_ok && loopback
-}
-
-fn header(name: &str, value: &str) -> tiny_http::Header {
-    // Names and values are ours or JSON without control characters: always valid.
-    tiny_http::Header::from_bytes(name.as_bytes(), value.as_bytes())
-        .unwrap_or_else(|()| unreachable!("invalid header {name}"))
 }
 
 /// The answer to a GET of `url` (path and query string).

@@ -927,3 +927,53 @@ fn inputs_of_another_scene_are_refused_and_replaced_files_do_not_kill_the_viewer
         "{err}"
     );
 }
+
+/// Sends `raw` and returns the status line of the answer (empty when none came).
+fn raw_status(addr: std::net::SocketAddr, raw: &[u8]) -> String {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(std::time::Duration::from_secs(20)))
+        .unwrap();
+    let _ = s.write_all(raw);
+    let mut got = Vec::new();
+    let _ = s.read_to_end(&mut got);
+    String::from_utf8_lossy(&got)
+        .lines()
+        .next()
+        .unwrap_or("")
+        .to_string()
+}
+
+/// The server side of the limits (crates/view/src/http.rs): a POST declaring a 1 TB body
+/// gets 405 at once and the server lives on (tiny_http allocated the declared length and
+/// aborted); a header line over the limit gets 431; a client that connects and says
+/// nothing does not hold up others; a malformed request line gets 400.
+#[test]
+fn the_server_survives_hostile_requests() {
+    let listener = listen(LOCALHOST, 0).unwrap();
+    let addr = listener.addr();
+    std::thread::spawn(move || listener.serve(demo_scene()));
+    let host = format!("Host: {addr}\r\n");
+    let post =
+        format!("POST /api/scene HTTP/1.1\r\n{host}Content-Length: 1000000000000\r\n\r\nabc");
+    assert!(raw_status(addr, post.as_bytes()).contains("405"));
+    let huge = format!(
+        "GET / HTTP/1.1\r\n{host}X-Big: {}\r\n\r\n",
+        "a".repeat(200_000)
+    );
+    assert!(raw_status(addr, huge.as_bytes()).contains("431"));
+    assert!(raw_status(addr, b"NONSENSE\r\n\r\n").contains("400"));
+    // Idle clients hold their own threads, not the server.
+    let idle: Vec<TcpStream> = (0..8).map(|_| TcpStream::connect(addr).unwrap()).collect();
+    let (status, body) = http_get(addr, "/api/scene");
+    assert!(status.contains("200"), "{status}");
+    assert!(serde_json::from_slice::<serde_json::Value>(&body).is_ok());
+    drop(idle);
+    let head = format!("HEAD /api/scene HTTP/1.1\r\n{host}\r\n");
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.write_all(head.as_bytes()).unwrap();
+    let mut got = Vec::new();
+    s.read_to_end(&mut got).unwrap();
+    let text = String::from_utf8_lossy(&got);
+    assert!(text.starts_with("HTTP/1.1 200"), "{text}");
+    assert!(text.ends_with("\r\n\r\n"), "HEAD carries no body: {text}");
+}
