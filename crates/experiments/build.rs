@@ -3,7 +3,6 @@
 //! that `profuse demo` regenerates its scene when the generator's code changed. This crate
 //! is not published: the sibling sources are always there.
 
-use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 #[path = "../pipeline/src/fnv.rs"]
@@ -19,15 +18,7 @@ fn main() {
     let mut watch = |p: &Path| println!("cargo:rerun-if-changed={}", p.display());
     let table = identity::workspace_identities(&here.join("..").join(".."), &own, &mut watch)
         .unwrap_or_default();
-    let mut code = String::from(
-        "/// Code identity (FNV-1a 64, hex) of each workspace crate the experiments run, by\n\
-         /// package name; written by `build.rs`.\n\
-         pub(crate) const CRATE_CODE: &[(&str, &str)] = &[\n",
-    );
-    for (name, id) in &table {
-        let _ = writeln!(code, "    ({name:?}, \"{id:016x}\"),");
-    }
-    code.push_str("];\n");
+    let code = identity::crate_code_table(&table, "the experiments");
     let out = PathBuf::from(std::env::var_os("OUT_DIR").unwrap_or_default());
     if let Err(e) = std::fs::write(out.join("code_identity.rs"), code) {
         panic!("cannot write code_identity.rs into OUT_DIR: {e}");

@@ -4,7 +4,6 @@
 //! Outside the workspace (a packaged crate) the sibling sources are not there: the
 //! pipeline's own sources and version then stand for every crate.
 
-use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 #[path = "src/fnv.rs"]
@@ -30,15 +29,7 @@ fn main() {
         "/// Identity of the pipeline crate's own sources (the glue that calls each stage).\n\
          pub(crate) const GLUE_CODE: &str = \"{glue:016x}\";\n"
     );
-    code.push_str(
-        "/// Code identity (FNV-1a 64, hex) of each workspace crate the pipeline runs, by\n\
-         /// package name; written by `build.rs`.\n\
-         pub(crate) const CRATE_CODE: &[(&str, &str)] = &[\n",
-    );
-    for (name, id) in &table {
-        let _ = writeln!(code, "    ({name:?}, \"{id:016x}\"),");
-    }
-    code.push_str("];\n");
+    code.push_str(&identity::crate_code_table(&table, "the pipeline"));
     let out = PathBuf::from(std::env::var_os("OUT_DIR").unwrap_or_default());
     if let Err(e) = std::fs::write(out.join("code_identity.rs"), code) {
         panic!("cannot write code_identity.rs into OUT_DIR: {e}");

@@ -127,10 +127,43 @@ pub fn workspace_identities(
     Some(ws.done)
 }
 
+/// The `CRATE_CODE` table a build script generates: one `(package, identity)` row per crate
+/// of `table`; `runner` completes the doc line ("the pipeline", "the experiments").
+pub fn crate_code_table(table: &BTreeMap<String, u64>, runner: &str) -> String {
+    let mut code = format!(
+        "/// Code identity (FNV-1a 64, hex) of each workspace crate {runner} runs, by\n\
+         /// package name; written by `build.rs`.\n\
+         pub(crate) const CRATE_CODE: &[(&str, &str)] = &[\n"
+    );
+    for (name, id) in table {
+        code.push_str(&format!("    ({name:?}, \"{id:016x}\"),\n"));
+    }
+    code.push_str("];\n");
+    code
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_crate_code_table_is_rust_with_one_row_per_crate() {
+        let table = BTreeMap::from([("a-b".to_string(), 0xab_u64), ("c".to_string(), 1)]);
+        let code = crate_code_table(&table, "the pipeline");
+        assert!(
+            code.contains("each workspace crate the pipeline runs, by\n"),
+            "{code}"
+        );
+        assert!(
+            code.contains("    (\"a-b\", \"00000000000000ab\"),\n"),
+            "{code}"
+        );
+        assert!(
+            code.contains("    (\"c\", \"0000000000000001\"),\n];\n"),
+            "{code}"
+        );
+    }
 
     /// A workspace of three crates: `app` depends on `mid`, `mid` on `leaf`; `leaf` has
     /// `app` as a dev-dependency (which must not count).
