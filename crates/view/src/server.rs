@@ -130,7 +130,7 @@ impl Listener {
             let _ = stream.set_write_timeout(Some(http::WRITE_TIMEOUT));
             if open.fetch_add(1, Ordering::SeqCst) >= http::MAX_CONNECTIONS {
                 open.fetch_sub(1, Ordering::SeqCst);
-                let busy = Answer::error(503, "too many connections; try again".into());
+                let busy = hardened(Answer::error(503, "too many connections; try again".into()));
                 reply(&mut stream, &busy, true);
                 continue;
             }
@@ -156,31 +156,26 @@ fn serve_connection(scene: &ViewScene, mut stream: TcpStream, addr: SocketAddr) 
             );
             (a, head.method != "HEAD")
         }
-        Err(http::HeadError::TooLarge) => (
-            Answer::error(
-                431,
-                format!("request head over {} bytes", http::MAX_HEAD_BYTES),
-            ),
+        Err(http::HeadError::TooLarge) => {
+            let over = format!("request head over {} bytes", http::MAX_HEAD_BYTES);
+            (hardened(Answer::error(431, over)), true)
+        }
+        Err(http::HeadError::Malformed) => (
+            hardened(Answer::error(400, "not an HTTP/1.x request".into())),
             true,
         ),
-        Err(http::HeadError::Malformed) => {
-            (Answer::error(400, "not an HTTP/1.x request".into()), true)
-        }
         Err(http::HeadError::Gone) => return,
     };
     reply(&mut stream, &answer, with_body);
 }
 
-/// Writes `answer` with the headers every answer carries.
+/// Writes `answer` (already [`hardened`]) with its content type and `no-store`.
 fn reply(stream: &mut TcpStream, answer: &Answer, with_body: bool) {
     let mut headers: Vec<(&str, String)> = vec![
         ("Content-Type", answer.content_type.to_string()),
         ("Cache-Control", "no-store".to_string()),
     ];
     headers.extend(answer.headers.iter().map(|(n, v)| (*n, v.clone())));
-    if !headers.iter().any(|(n, _)| *n == "X-Content-Type-Options") {
-        headers.extend(SECURITY_HEADERS.iter().map(|(n, v)| (*n, (*v).to_string())));
-    }
     if let Err(e) = http::write_answer(stream, answer.status, &headers, &answer.body, with_body) {
         eprintln!("profuse view: reply failed: {e}");
     }
@@ -203,7 +198,7 @@ pub fn respond(
     url: &str,
     addr: SocketAddr,
 ) -> Answer {
-    let mut out = if method != "GET" && method != "HEAD" {
+    let out = if method != "GET" && method != "HEAD" {
         let mut a = Answer::error(405, format!("method {method} not allowed: GET or HEAD"));
         a.headers.push(("Allow", "GET, HEAD".into()));
         a
@@ -219,9 +214,15 @@ pub fn respond(
     } else {
         answer(scene, url)
     };
-    out.headers
+    hardened(out)
+}
+
+/// `answer` with the headers every answer carries ([`SECURITY_HEADERS`]).
+fn hardened(mut answer: Answer) -> Answer {
+    answer
+        .headers
         .extend(SECURITY_HEADERS.iter().map(|(n, v)| (*n, (*v).to_string())));
-    out
+    answer
 }
 
 /// Whether a request with this `Host` header may be answered by a server on `addr`: any
