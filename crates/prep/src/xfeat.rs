@@ -426,7 +426,7 @@ pub fn match_pairs<E: From<PrepError>>(
         for v in [i, j] {
             if let std::collections::btree_map::Entry::Vacant(slot) = cache.entry(v) {
                 let t = Instant::now();
-                let img = view_image(cameras, images, v)?;
+                let img = crate::image::load_view_image(images, cameras, v)?;
                 slot.insert(xfeat.features(&img, top_k)?);
                 report.seconds_features += t.elapsed().as_secs_f64();
                 report.images += 1;
@@ -450,12 +450,6 @@ pub fn match_pairs<E: From<PrepError>>(
         progress(n + 1, pairs.len());
     }
     Ok(report)
-}
-
-/// The photo of view `v`, checked against the camera's size (the matches are written in
-/// the camera's pixels).
-fn view_image(cameras: &profuse_formats::Cameras, images: &Path, v: usize) -> Result<RgbImage> {
-    crate::image::load_view_image(images, cameras, v)
 }
 
 #[cfg(test)]
