@@ -22,6 +22,23 @@ enum Stream {
     Err,
 }
 
+/// Spawns `cmd`, trying again for up to a second while the program is "text file busy"
+/// (ETXTBSY): an executable just written (a wrapper script) stays busy while any process
+/// forked meanwhile, by another thread of this program, still holds its write descriptor
+/// between fork and exec. Any other error is returned at once.
+fn spawn_retrying_busy(cmd: &mut Command) -> std::io::Result<std::process::Child> {
+    let mut tries = 0;
+    loop {
+        match cmd.spawn() {
+            Err(e) if e.kind() == std::io::ErrorKind::ExecutableFileBusy && tries < 20 => {
+                tries += 1;
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+            other => return other,
+        }
+    }
+}
+
 /// Runs `cmd` to completion; returns the wall-clock seconds it took. The full output
 /// (standard output and error, interleaved as they arrive) goes to `log`.
 pub(crate) fn run_step(
@@ -33,16 +50,14 @@ pub(crate) fn run_step(
     let mut log_file = std::fs::File::create(log).map_err(|e| SfmError::io(log, e))?;
     let program = Path::new(cmd.get_program()).to_path_buf();
     let start = Instant::now();
-    let mut child = cmd
-        .stdin(Stdio::null())
+    cmd.stdin(Stdio::null())
         .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .map_err(|source| SfmError::Spawn {
-            step,
-            program,
-            source,
-        })?;
+        .stderr(Stdio::piped());
+    let mut child = spawn_retrying_busy(&mut cmd).map_err(|source| SfmError::Spawn {
+        step,
+        program,
+        source,
+    })?;
     let (tx, rx) = mpsc::channel::<(Stream, String)>();
     let mut readers = Vec::new();
     if let Some(out) = child.stdout.take() {
